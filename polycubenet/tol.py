@@ -1,0 +1,26 @@
+"""Geometric tolerances in one place.
+
+All lengths are *relative to the bounding-box diagonal* unless the name says
+otherwise; the canonical frame (:mod:`polycubenet.frame`) makes that diagonal 1.
+"""
+
+from __future__ import annotations
+
+#: vertices closer than this (relative to the diagonal) are merged on load
+MERGE_REL = 1e-9
+#: a triangle whose area is below AREA_REL * diagonal**2 is degenerate
+AREA_REL = 1e-14
+#: enclosed volume below VOLUME_REL * diagonal**3 counts as zero
+VOLUME_REL = 1e-9
+#: default maximum face count accepted by ``load_part``
+MAX_FACES = 5_000_000
+#: a hex corner whose edge is shorter than this (relative to the mean edge) is collapsed
+EDGE_COLLAPSE_REL = 1e-12
+#: an axis-aligned normal deviates from its axis by at most this (unit vector components)
+AXIS_NORMAL = 1e-9
+#: a hex whose scaled Jacobian has magnitude below this is degenerate (flat at a corner);
+#: the scaled Jacobian is scale-free, so this is an absolute number
+SJ_DEGENERATE = 1e-10
+#: a hex boundary farther than this from the input surface (Hausdorff, relative to the
+#: input's bounding-box diagonal) is flagged in the quality report (the benchmark bar)
+HAUSDORFF_REL_MAX = 0.01

@@ -1,0 +1,36 @@
+"""Shared fixtures: small known shapes built in memory (no files from outside the repo)."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+
+
+def _box(lo, hi):
+    import trimesh
+
+    return trimesh.creation.box(bounds=[lo, hi])
+
+
+@pytest.fixture(scope="session")
+def l_block():
+    """An L-shaped block (genus 0), as (V, F) with refined triangles: extents 3 x 1 x 2 after union."""
+    import trimesh
+
+    a = _box([0, 0, 0], [3, 1, 1])
+    b = _box([0, 0, 1], [1, 1, 2])
+    m = trimesh.boolean.union([a, b], engine="manifold")
+    m = m.subdivide().subdivide()
+    return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
+
+
+@pytest.fixture(scope="session")
+def torus():
+    import trimesh
+
+    m = trimesh.creation.torus(1.0, 0.35, major_sections=48, minor_sections=24)
+    return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
