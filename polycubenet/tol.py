@@ -24,3 +24,23 @@ SJ_DEGENERATE = 1e-10
 #: a hex boundary farther than this from the input surface (Hausdorff, relative to the
 #: input's bounding-box diagonal) is flagged in the quality report (the benchmark bar)
 HAUSDORFF_REL_MAX = 0.01
+#: default triangle size when meshing a CAD (STEP/IGES) file, relative to the diagonal
+CAD_MESH_SIZE_REL = 0.02
+#: sewing tolerance for CAD faces that arrive unsewn (IGES, surface-only STEP), relative to the diagonal
+CAD_SEW_REL = 1e-6
+
+# --- outlier removal (polycubenet.cleanup) -------------------------------------------
+#: Phase I radius: tau = this * median L1 nearest-neighbour distance
+OUTLIER_TAU_FACTOR = 3.0
+#: Phase II threshold: median + this * robust sigma of the nearest-neighbour distances
+OUTLIER_MAD_FACTOR = 4.0
+#: the robust sigma is at least this fraction of the median (blue noise has a tiny MAD)
+OUTLIER_MAD_FLOOR_REL = 0.1
+#: Phase II never prunes more than this fraction of the points
+OUTLIER_MAX_FRACTION = 0.05
+
+# --- registration (polycubenet.registration) -----------------------------------------
+#: CPD stops when sigma^2 falls below this (canonical units, diagonal 1, squared)
+CPD_SIGMA2_MIN = 1e-12
+#: ICP stops when the update (rotation in radians, relative scale, translation) is below this
+ICP_STEP_MIN = 1e-12

@@ -1,0 +1,271 @@
+"""Off-screen pictures of hex meshes and their quality (PNG, written atomically).
+
+Two pictures:
+
+* :func:`plot_sj_histogram` -- the scaled-Jacobian histogram of a
+  :class:`~polycubenet.quality.QualityReport` (matplotlib, no pyplot, Agg canvas).
+* :func:`render_hex_quality` -- the mesh coloured by per-hex scaled Jacobian, next
+  to a cut-away (the hexes on one side of a mid plane, whole cells kept) that shows
+  the interior.  Backends, tried in order with ``backend="auto"``:
+
+  1. ``"pyvista"``: VTK off-screen (``off_screen=True``); on a machine without a
+     display VTK renders through EGL (we set ``VTK_DEFAULT_OPENGL_WINDOW`` to
+     ``vtkEGLRenderWindow`` unless it is already set) or OSMesa.
+  2. ``"matplotlib"``: the boundary quads as a ``Poly3DCollection`` (slower,
+     no lighting, always available).
+
+  A pyvista failure (an exception or a blank image) falls back to matplotlib.
+  The environment variable ``POLYCUBENET_RENDER_BACKEND`` overrides ``"auto"``.
+
+Colours: SJ in [0, 1] on a colour map; SJ < 0 (inverted) is drawn red.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .atomic import atomic_path
+from .hexmesh import boundary_quads
+
+log = logging.getLogger(__name__)
+
+#: colour map of the scaled Jacobian in [0, 1]; values below 0 use _BELOW
+_CMAP = "viridis"
+_BELOW = "red"
+
+
+def _figure(figsize):
+    from matplotlib.figure import Figure  # no pyplot: no global backend state
+
+    return Figure(figsize=figsize, dpi=100)
+
+
+def plot_sj_histogram(report, path: str | Path) -> Path:
+    """Write the scaled-Jacobian histogram of ``report`` to ``path`` (PNG, atomic).
+
+    Bars over [-1, 1] (log count axis, so a handful of bad hexes stays visible),
+    vertical lines at min, 1st percentile and mean, and the report's warnings.
+
+    Parameters
+    ----------
+    report : QualityReport
+    path : path
+
+    Returns
+    -------
+    Path
+    """
+    path = Path(path)
+    edges = np.asarray(report.hist_edges, dtype=float)
+    counts = np.asarray(report.hist_counts, dtype=float)
+    fig = _figure((7.0, 4.2))
+    ax = fig.add_subplot(1, 1, 1)
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    colours = ["tab:red" if c < 0 else "tab:blue" for c in centres]
+    ax.bar(centres, counts, width=np.diff(edges) * 0.95, color=colours, edgecolor="black", linewidth=0.3)
+    if counts.any():
+        ax.set_yscale("log")
+        ax.set_ylim(0.5, counts.max() * 2.5)
+    ax.set_xlim(-1.0, 1.0)
+    ax.set_xlabel("scaled Jacobian (per hex)")
+    ax.set_ylabel("hexes")
+    if report.hex_count:
+        for value, name, colour, ls in (
+            (report.sj_min, "min", "tab:red", "-"),
+            (report.sj_p01, "p01", "tab:orange", "--"),
+            (report.sj_avg, "avg", "tab:green", "-."),
+        ):
+            ax.axvline(value, color=colour, linestyle=ls, linewidth=1.5, label=f"{name} = {value:.4f}")
+        ax.legend(loc="upper left", fontsize=9)
+    status = "VALID" if report.valid else "INVALID"
+    ax.set_title(
+        f"{status}: {report.hex_count} hexes, {report.inverted_count} inverted, "
+        f"{report.degenerate_count} degenerate",
+        color="black" if report.valid else "tab:red",
+        fontsize=10,
+    )
+    if report.warnings:
+        fig.text(0.01, 0.01, "\n".join(report.warnings)[:400], fontsize=7, color="tab:red", va="bottom", wrap=True)
+        fig.subplots_adjust(bottom=0.12 + 0.04 * len(report.warnings))
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    return path
+
+
+def _cut_plane(points: np.ndarray, hexes: np.ndarray):
+    """The cut-away plane: through the centre, normal along the longest bbox axis."""
+    used = points[np.unique(hexes)]
+    lo, hi = used.min(axis=0), used.max(axis=0)
+    axis = int(np.argmax(hi - lo))
+    return axis, 0.5 * (lo + hi)
+
+
+def _cut_mask(points, hexes, axis, centre) -> np.ndarray:
+    """Hexes whose centroid is below the mid plane along ``axis`` (kept in the cut-away)."""
+    c = points[hexes].mean(axis=1)
+    keep = c[:, axis] <= centre[axis]
+    if not keep.any():  # a single layer: keep everything
+        keep[:] = True
+    return keep
+
+
+def _render_pyvista(points, hexes, sj, path: Path, title: str | None, window_size) -> None:
+    os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+    import pyvista as pv
+
+    cells = np.hstack([np.full((len(hexes), 1), 8, dtype=np.int64), hexes]).ravel()
+    grid = pv.UnstructuredGrid(cells, np.full(len(hexes), pv.CellType.HEXAHEDRON, dtype=np.uint8), points)
+    grid.cell_data["SJ"] = sj
+    axis, centre = _cut_plane(points, hexes)
+    cut = grid.extract_cells(np.flatnonzero(_cut_mask(points, hexes, axis, centre)))
+
+    kw = dict(
+        scalars="SJ",
+        cmap=_CMAP,
+        clim=(0.0, 1.0),
+        below_color=_BELOW,
+        show_edges=True,
+        edge_color="black",
+        line_width=0.5,
+        preference="cell",
+    )
+    view = np.array([1.0, 1.0, 1.0])  # look from +x+y+z; the cut face (normal +axis) faces it
+    pl = pv.Plotter(off_screen=True, shape=(1, 2), window_size=window_size, border=False)
+    try:
+        pl.subplot(0, 0)
+        pl.add_mesh(
+            grid,
+            scalar_bar_args=dict(
+                title="scaled Jacobian (red: < 0)",
+                vertical=False,
+                position_x=0.2,
+                position_y=0.03,
+                width=0.6,
+                height=0.07,
+                n_labels=6,
+                fmt="%.1f",
+                below_label="",
+                title_font_size=14,
+                label_font_size=12,
+            ),
+            **kw,
+        )
+        pl.add_text("boundary", font_size=10)
+        pl.camera_position = "iso"
+        pl.camera.azimuth = 0.0
+        pl.reset_camera()
+        pl.camera.zoom(0.9)
+        pl.subplot(0, 1)
+        pl.add_mesh(cut, show_scalar_bar=False, **kw)
+        pl.add_text(f"cut-away ({'xyz'[axis]} < mid)", font_size=10)
+        pl.camera.position = tuple(centre + view)
+        pl.camera.focal_point = tuple(centre)
+        pl.camera.up = (0.0, 0.0, 1.0) if axis != 2 else (0.0, 1.0, 0.0)
+        pl.reset_camera()
+        pl.camera.zoom(0.9)
+        if title:  # right panel, lower left, wrapped at commas
+            pl.add_text(title.replace(", ", "\n"), position="lower_left", font_size=8)
+        with atomic_path(path) as tmp:
+            img = pl.screenshot(str(tmp), return_img=True)
+            if img is None or np.ptp(np.asarray(img)) == 0:
+                raise RuntimeError("pyvista rendered a blank image")
+    finally:
+        pl.close()
+
+
+def _render_matplotlib(points, hexes, sj, path: Path, title: str | None, window_size) -> None:
+    import matplotlib as mpl
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    cmap = mpl.colormaps[_CMAP].with_extremes(under=_BELOW)
+    norm = mpl.colors.Normalize(0.0, 1.0)
+    axis, centre = _cut_plane(points, hexes)
+    keep = _cut_mask(points, hexes, axis, centre)
+    fig = _figure((window_size[0] / 100, window_size[1] / 100))
+    used = points[np.unique(hexes)]
+    lo, hi = used.min(axis=0), used.max(axis=0)
+    half = 0.5 * (hi - lo).max()
+    for k, (sub, name) in enumerate(((np.arange(len(hexes)), "boundary"), (np.flatnonzero(keep), "cut-away"))):
+        ax = fig.add_subplot(1, 2, k + 1, projection="3d")
+        quads, owner = boundary_quads(hexes[sub], return_hex=True)
+        colours = cmap(norm(sj[sub][owner]))
+        ax.add_collection3d(
+            Poly3DCollection(points[quads], facecolors=colours, edgecolors="black", linewidths=0.1)
+        )
+        mid = 0.5 * (lo + hi)
+        ax.set_xlim(mid[0] - half, mid[0] + half)
+        ax.set_ylim(mid[1] - half, mid[1] + half)
+        ax.set_zlim(mid[2] - half, mid[2] + half)
+        ax.view_init(elev=30, azim=45)
+        ax.set_box_aspect((1, 1, 1), zoom=1.3)
+        ax.set_axis_off()
+        ax.set_title(name if k == 0 else f"cut-away ({'xyz'[axis]} < mid)", fontsize=9)
+    sm = mpl.cm.ScalarMappable(norm=norm, cmap=cmap)
+    fig.colorbar(sm, ax=fig.axes, orientation="horizontal", fraction=0.05, pad=0.02, label="scaled Jacobian",
+                 extend="min")
+    if title:
+        fig.suptitle(title, fontsize=8)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+
+
+def render_hex_quality(
+    points,
+    hexes,
+    sj,
+    path: str | Path,
+    *,
+    title: str | None = None,
+    backend: str = "auto",
+    window_size: tuple[int, int] = (1400, 700),
+) -> str:
+    """Render the hex mesh coloured by per-hex scaled Jacobian, with a cut-away, to a PNG.
+
+    Parameters
+    ----------
+    points : (P, 3) float
+    hexes : (H, 8) int
+        VTK hexahedron connectivity, ``H >= 1``.
+    sj : (H,) float
+        Per-hex scaled Jacobian (colour; < 0 drawn red).
+    path : path
+        PNG written atomically.
+    title : str, optional
+        Caption drawn on the picture.
+    backend : {"auto", "pyvista", "matplotlib"}
+        ``"auto"`` tries pyvista and falls back to matplotlib.
+    window_size : (int, int)
+        Picture size in pixels.
+
+    Returns
+    -------
+    str
+        The backend that produced the picture: ``"pyvista"`` or ``"matplotlib"``.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    hexes = np.asarray(hexes, dtype=np.int64)
+    sj = np.asarray(sj, dtype=np.float64)
+    if len(hexes) == 0:
+        raise ValueError("nothing to render: no hexes")
+    path = Path(path)
+    if backend == "auto":
+        backend = os.environ.get("POLYCUBENET_RENDER_BACKEND", "auto")
+    if backend in ("auto", "pyvista"):
+        try:
+            _render_pyvista(points, hexes, sj, path, title, window_size)
+            return "pyvista"
+        except Exception as exc:  # noqa: BLE001 - any VTK/EGL failure -> fallback
+            if backend == "pyvista":
+                raise
+            log.warning("pyvista off-screen rendering failed (%s); falling back to matplotlib", exc)
+    if backend not in ("auto", "matplotlib"):
+        raise ValueError(f"unknown render backend {backend!r}")
+    _render_matplotlib(points, hexes, sj, path, title, window_size)
+    return "matplotlib"
+
+
+__all__ = ["plot_sj_histogram", "render_hex_quality"]

@@ -1,0 +1,263 @@
+"""Scaled Jacobian (against VTK), degenerate elements, boundary topology and the quality report."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from polycubenet import tol
+from polycubenet.data import HexMesh
+from polycubenet.hexmesh import (
+    boundary_quads,
+    boundary_vertex_mask,
+    enclosed_volume,
+    hex_volumes,
+    quads_to_triangles,
+)
+from polycubenet.quality import (
+    degenerate_mask,
+    quality_report,
+    scaled_jacobian,
+    scaled_jacobian_and_degenerate,
+    vtk_scaled_jacobian,
+)
+
+UNIT = np.array(
+    [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], dtype=np.float64
+)
+ONE = np.arange(8)[None, :]
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def structured(n: int, size: float = 1.0) -> HexMesh:
+    """An n x n x n block of cubes filling [0, size]^3, in VTK order."""
+    g = np.linspace(0.0, size, n + 1)
+    X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
+    pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
+
+    def idx(i, j, k):
+        return (i * (n + 1) + j) * (n + 1) + k
+
+    i, j, k = (a.ravel() for a in np.meshgrid(np.arange(n), np.arange(n), np.arange(n), indexing="ij"))
+    hexes = np.stack(
+        [
+            idx(i, j, k), idx(i + 1, j, k), idx(i + 1, j + 1, k), idx(i, j + 1, k),
+            idx(i, j, k + 1), idx(i + 1, j, k + 1), idx(i + 1, j + 1, k + 1), idx(i, j + 1, k + 1),
+        ],
+        axis=1,
+    )  # fmt: skip
+    return HexMesh(pts, hexes)
+
+
+def cube_surface(lo=0.0, hi=1.0):
+    import trimesh
+
+    m = trimesh.creation.box(bounds=[[lo] * 3, [hi] * 3])
+    return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
+
+
+# --------------------------------------------------------------------------- scaled Jacobian
+
+
+def test_matches_vtk_on_random_distorted_hexes():
+    rng = np.random.default_rng(12345)
+    n = 3000
+    # perturbations of the unit cube, from mild to wild (many inverted), plus random scale/offset
+    sigma = rng.choice([0.05, 0.2, 0.45], size=n)[:, None, None]
+    X = UNIT[None] + rng.normal(size=(n, 8, 3)) * sigma
+    X = X * rng.uniform(0.01, 100.0, size=(n, 1, 1)) + rng.normal(size=(n, 1, 3)) * 10
+    pts = X.reshape(-1, 3)
+    hexes = np.arange(8 * n).reshape(n, 8)
+    ours, deg = scaled_jacobian_and_degenerate(pts, hexes)
+    ref = vtk_scaled_jacobian(pts, hexes)
+    assert not deg.any()
+    assert (ours < 0).sum() > 100, "the sample must contain inverted hexes"
+    assert (ours > 0.5).sum() > 100
+    np.testing.assert_allclose(ours, ref, rtol=0, atol=1e-9)
+    assert np.all(np.abs(ours) <= 1.0 + 1e-12)
+
+
+def test_unit_cube_and_rigid_box_are_one():
+    assert scaled_jacobian(UNIT, ONE)[0] == pytest.approx(1.0, abs=1e-15)
+    # a rotated, translated, anisotropic box is still 1
+    c, s = np.cos(0.7), np.sin(0.7)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    box = (UNIT * [3.0, 0.1, 7.0]) @ R.T + [5, -2, 1]
+    assert scaled_jacobian(box, ONE)[0] == pytest.approx(1.0, abs=1e-14)
+
+
+@pytest.mark.parametrize("shear", [0.25, 1.0, 3.0])
+def test_sheared_hex_analytic(shear):
+    # top face shifted by `shear` in x: a parallelepiped; every corner frame has det 1 and
+    # lengths 1, 1, sqrt(1 + shear^2)
+    X = UNIT.copy()
+    X[4:, 0] += shear
+    expected = 1.0 / np.sqrt(1.0 + shear**2)
+    assert scaled_jacobian(X, ONE)[0] == pytest.approx(expected, abs=1e-14)
+    assert vtk_scaled_jacobian(X, ONE)[0] == pytest.approx(expected, abs=1e-14)
+
+
+def test_inverted_hexes_are_negative():
+    mirrored = UNIT[[4, 5, 6, 7, 0, 1, 2, 3]]  # top and bottom swapped: inside out
+    assert scaled_jacobian(mirrored, ONE)[0] == pytest.approx(-1.0)
+    tangled = UNIT.copy()
+    tangled[6] = [0.2, 0.2, 0.2]  # corner 6 pushed through the opposite corner
+    sj = scaled_jacobian(tangled, ONE)[0]
+    assert sj < 0
+    assert sj == pytest.approx(vtk_scaled_jacobian(tangled, ONE)[0], abs=1e-12)
+    r = quality_report(HexMesh(tangled, ONE))
+    assert (r.inverted_count, r.degenerate_count, r.valid) == (1, 0, False)
+    assert any("inverted" in w for w in r.warnings)
+
+
+def test_collapsed_edge_is_finite_and_degenerate():
+    X = UNIT.copy()
+    X[1] = X[0]  # edge 0-1 collapsed to a point
+    assert vtk_scaled_jacobian(X, ONE)[0] > 1e29  # VTK's sentinel, for the record
+    sj, deg = scaled_jacobian_and_degenerate(X, ONE)
+    assert np.isfinite(sj[0]) and sj[0] == 0.0
+    assert deg[0]
+    # a nearly collapsed edge (below EDGE_COLLAPSE_REL x mean edge) counts too
+    Y = UNIT.copy()
+    Y[1] = Y[0] + [0.1 * tol.EDGE_COLLAPSE_REL, 0, 0]
+    assert degenerate_mask(Y, ONE)[0]
+    assert np.isfinite(scaled_jacobian(Y, ONE)[0])
+    # in a mesh: one good hex, one collapsed
+    pts = np.vstack([UNIT + [2, 0, 0], X])
+    r = quality_report(HexMesh(pts, np.array([np.arange(8), np.arange(8, 16)])))
+    assert r.degenerate_count == 1 and r.inverted_count == 0
+    assert r.valid is False
+    assert r.sj_min == 0.0
+    assert any("degenerate" in w for w in r.warnings)
+    json.dumps(r.to_dict(), allow_nan=False)
+
+
+def test_flat_hex_is_degenerate():
+    X = UNIT.copy()
+    X[4:, 2] = 0.0  # the whole hex squashed into a plane: edges vertical to it collapse
+    sj, deg = scaled_jacobian_and_degenerate(X, ONE)
+    assert deg[0] and np.isfinite(sj[0])
+    Z = UNIT.copy()
+    Z[6] = [1.5, 1.5, 0.0]  # corner 6 moved into the bottom plane: flat at corner 2 only (no short edge)
+    sj, deg = scaled_jacobian_and_degenerate(Z, ONE)
+    assert abs(sj[0]) < tol.SJ_DEGENERATE and deg[0]
+
+
+# --------------------------------------------------------------------------- topology
+
+
+def test_boundary_quads_of_2x2x2_block():
+    m = structured(2, size=2.0)
+    quads, owner = boundary_quads(m.hexes, return_hex=True)
+    assert quads.shape == (24, 4) and quads.dtype == np.int64
+    assert len(np.unique(np.sort(quads, axis=1), axis=0)) == 24
+    tris = quads_to_triangles(quads)
+    assert enclosed_volume(m.points, tris) == pytest.approx(8.0)  # > 0: outward
+    # each quad's normal points away from the block centre
+    P = m.points[quads]
+    normal = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+    assert np.all(np.einsum("ij,ij->i", normal, P.mean(axis=1) - 1.0) > 0)
+    # ... and away from its own hex
+    hex_centre = m.points[m.hexes[owner]].mean(axis=1)
+    assert np.all(np.einsum("ij,ij->i", normal, P.mean(axis=1) - hex_centre) > 0)
+    mask = boundary_vertex_mask(m.hexes, len(m.points))
+    assert mask.sum() == 26 and not mask[13]  # 27 vertices, the centre is interior
+    np.testing.assert_allclose(hex_volumes(m.points, m.hexes), 1.0)
+
+
+def test_hex_volume_exact_for_trilinear():
+    X = UNIT.copy()
+    X[6] = [1.5, 1.5, 1.5]  # non-planar faces: trilinear volume = 1 + 0.5^3... check against fine sampling
+    v = hex_volumes(X, ONE)[0]
+    # Monte Carlo-free check: midpoint rule on a fine parametric grid
+    t = (np.arange(40) + 0.5) / 40
+    u, w, s = (a.ravel() for a in np.meshgrid(t, t, t, indexing="ij"))
+    from polycubenet.hexmesh import _shape_gradients
+
+    J = np.einsum("ki,qkj->qij", X, _shape_gradients(np.stack([u, w, s], 1)))
+    assert v == pytest.approx(np.linalg.det(J).mean(), rel=1e-4)
+    assert hex_volumes(UNIT[[4, 5, 6, 7, 0, 1, 2, 3]], ONE)[0] == pytest.approx(-1.0)
+
+
+# --------------------------------------------------------------------------- report
+
+
+def test_report_cube_vs_its_surface():
+    m = structured(3)
+    r = quality_report(m, cube_surface(), n_samples=20_000)
+    assert r.valid and r.warnings == []
+    assert r.hex_count == 27 and r.point_count == 64 and r.boundary_quad_count == 54
+    assert r.sj_min == pytest.approx(1.0) and r.sj_avg == pytest.approx(1.0) and r.sj_p01 == pytest.approx(1.0)
+    assert r.inverted_count == 0 and r.degenerate_count == 0
+    assert r.volume == pytest.approx(1.0)
+    assert r.surface["hausdorff"] < 1e-6 and r.surface["mean"] < 1e-6
+    assert sum(r.hist_counts) == 27 and r.hist_counts[-1] == 27 and len(r.hist_edges) == 21
+    d = r.to_dict()
+    json.dumps(d, allow_nan=False)
+    assert "sj" not in d and "mesh" not in d
+
+
+def test_report_measures_distance_to_a_larger_cube():
+    # hex mesh of [0,1]^3 against the surface of [-0.05, 1.05]^3: the farthest surface point is a
+    # corner of the big cube, 0.05*sqrt(3) from the small one; relative to the diagonal 1.1*sqrt(3)
+    r = quality_report(structured(2), cube_surface(-0.05, 1.05), n_samples=20_000)
+    s = r.surface
+    assert s["surface_to_hex_max"] == pytest.approx(0.05 / 1.1, rel=1e-4)
+    assert s["hex_to_surface_max"] == pytest.approx(0.05 / (1.1 * np.sqrt(3)), rel=1e-3)
+    assert s["hausdorff"] == pytest.approx(0.05 / 1.1, rel=1e-4)
+    assert s["diagonal"] == pytest.approx(1.1 * np.sqrt(3))
+    assert r.valid  # elements are fine; the distance only warns
+    assert any("Hausdorff" in w for w in r.warnings)
+
+
+def test_mirrored_mesh_is_flagged():
+    m = structured(2)
+    r = quality_report(HexMesh(m.points, m.hexes[:, [4, 5, 6, 7, 0, 1, 2, 3]]))
+    assert not r.valid and r.inverted_count == 8 and r.sj_max == pytest.approx(-1.0)
+    assert any("negative" in w for w in r.warnings)
+
+
+def test_empty_mesh_report():
+    r = quality_report(HexMesh(np.zeros((0, 3)), np.zeros((0, 8), np.int64)))
+    assert not r.valid and r.sj_min is None and r.warnings
+    json.dumps(r.to_dict(), allow_nan=False)
+
+
+def _is_png(path, min_bytes=2000):
+    data = path.read_bytes()
+    return data[:8] == PNG_MAGIC and len(data) > min_bytes
+
+
+def _png_not_blank(path):
+    from PIL import Image
+
+    img = np.asarray(Image.open(path).convert("RGB"))
+    return img.shape[0] > 100 and img.shape[1] > 100 and np.ptp(img) > 0 and len(np.unique(img.reshape(-1, 3), axis=0)) > 10
+
+
+def test_write_pictures_and_json(tmp_path):
+    m = structured(3)
+    X = m.points.copy()
+    X[21] += [0.1, -0.1, 0.2]  # distort one interior vertex so colours vary
+    r = quality_report(HexMesh(X, m.hexes), cube_surface(), n_samples=5_000)
+    paths = r.write(tmp_path / "q")
+    for name in ("quality.json", "quality.png", "preview.png"):
+        assert (tmp_path / "q" / name).is_file()
+    assert _is_png(paths["histogram"]) and _is_png(paths["preview"])
+    assert _png_not_blank(paths["preview"]) and _png_not_blank(paths["histogram"])
+    d = json.loads(paths["json"].read_text())
+    assert d["hex_count"] == 27 and d["preview_backend"] in ("pyvista", "matplotlib")
+    assert d["sj_min"] == pytest.approx(r.sj_min)
+    assert not list((tmp_path / "q").glob(".tmp-*"))  # atomic writes leave no temp files
+
+
+def test_matplotlib_fallback_renders(tmp_path):
+    from polycubenet.render import render_hex_quality
+
+    m = structured(2)
+    sj = np.array([1.0, 0.5, -0.2, 0.9, 0.1, 0.7, 0.3, 0.8])
+    out = tmp_path / "p.png"
+    assert render_hex_quality(m.points, m.hexes, sj, out, backend="matplotlib", window_size=(500, 300)) == "matplotlib"
+    assert _is_png(out) and _png_not_blank(out)
