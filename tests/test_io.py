@@ -1,0 +1,392 @@
+"""Tests of polycubenet.io: the bad-input corpus, good inputs of every format, hex mesh round-trips."""
+
+from __future__ import annotations
+
+import inspect
+import math
+import threading
+import warnings
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import bad_inputs
+from polycubenet import errors
+from polycubenet.data import HexMesh, Part
+from polycubenet.errors import NonManifoldError, NotTriangularError, PartError, TooLargeError
+from polycubenet.io import (
+    SUPPORTED_HEX_FORMATS,
+    SUPPORTED_PART_FORMATS,
+    gmsh_session,
+    hex_volumes,
+    load_part,
+    part_from_arrays,
+    read_hex,
+    write_hex,
+)
+
+# ---------------------------------------------------------------------------------------------
+# the bad-input corpus
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="session")
+def corpus(tmp_path_factory) -> dict[str, tuple[Path, type, str]]:
+    folder = tmp_path_factory.mktemp("bad_inputs")
+    return {p.name: (p, err, desc) for p, err, desc in bad_inputs.make_corpus(folder)}
+
+
+@pytest.fixture(scope="session")
+def repairable(tmp_path_factory) -> dict[str, tuple[Path, str, str]]:
+    folder = tmp_path_factory.mktemp("repairable")
+    return {p.name: (p, word, desc) for p, word, desc in bad_inputs.make_repairable(folder)}
+
+
+def test_corpus_is_big_and_covers_every_part_error():
+    assert len(bad_inputs.BAD_CASES) >= 25
+    assert len({c.name for c in bad_inputs.BAD_CASES}) == len(bad_inputs.BAD_CASES)
+    subclasses = {
+        cls
+        for _, cls in inspect.getmembers(errors, inspect.isclass)
+        if issubclass(cls, PartError) and cls is not PartError
+    }
+    assert subclasses <= {c.error for c in bad_inputs.BAD_CASES}
+
+
+@pytest.mark.parametrize("name", [c.name for c in bad_inputs.BAD_CASES])
+def test_bad_input_raises_exact_error_naming_the_file(corpus, name):
+    path, expected, description = corpus[name]
+    with pytest.raises(PartError) as info:
+        load_part(path, **bad_inputs.load_kwargs(path))
+    assert type(info.value) is expected, f"{description}: got {type(info.value).__name__}: {info.value}"
+    assert path.name in str(info.value)
+    assert info.value.path == str(path)
+    assert len(info.value.reason) > 10
+
+
+@pytest.mark.parametrize("name", [c.name for c in bad_inputs.REPAIR_CASES])
+def test_repairable_input_loads_and_records_the_repair(repairable, name):
+    path, word, description = repairable[name]
+    part = load_part(path, **bad_inputs.load_kwargs(path))
+    assert any(word in r for r in part.meta["repairs"]), (description, part.meta["repairs"])
+    # every repairable input is a unit cube once repaired (the largest box: 1 x 2 x 2)
+    expected_volume = 4.0 if "keep_largest" in bad_inputs.load_kwargs(path) else 1.0
+    assert part.meta["volume"] == pytest.approx(expected_volume, rel=1e-6)
+    assert part.meta["genus"] == 0
+    assert part.faces.shape == (12, 3) and part.vertices.shape == (8, 3)
+    _assert_closed_outward(part)
+
+
+def test_pinch_and_non_orientable_messages_give_counts():
+    v, f = bad_inputs.join(bad_inputs.cube(), bad_inputs.cube((1, 1, 1), (2, 2, 2)))
+    with pytest.raises(NonManifoldError, match="1 non-manifold vertices"):
+        part_from_arrays(v, f, path="pinch")
+    with pytest.raises(NonManifoldError, match="non-orientable"):
+        part_from_arrays(*bad_inputs.klein_bottle(), path="klein")
+
+
+def test_arrays_of_quads_are_not_triangles_and_limits_apply():
+    v, _ = bad_inputs.cube()
+    quads = np.array([[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]])
+    with pytest.raises(NotTriangularError, match=r"shape \(6, 4\)"):
+        part_from_arrays(v, quads, path="quads.npz")
+    with pytest.raises(TooLargeError):
+        part_from_arrays(*bad_inputs.cube(), max_faces=11)
+
+
+# ---------------------------------------------------------------------------------------------
+# good inputs: every mesh format
+# ---------------------------------------------------------------------------------------------
+
+
+def _assert_closed_outward(part: Part):
+    f = part.faces
+    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    # closed and consistently oriented: every directed edge appears once, and its reverse once
+    keys = directed[:, 0] * len(part.vertices) + directed[:, 1]
+    rev = directed[:, 1] * len(part.vertices) + directed[:, 0]
+    assert len(np.unique(keys)) == len(keys)
+    assert set(keys.tolist()) == set(rev.tolist())
+    v = part.vertices - part.vertices.mean(0)
+    vol = np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() / 6
+    assert vol > 0
+    assert part.vertices.dtype == np.float64 and part.faces.dtype == np.int64
+
+
+@pytest.fixture(scope="session")
+def shapes():
+    import trimesh
+
+    box = trimesh.creation.box(extents=(1.0, 2.0, 3.0))
+    torus = trimesh.creation.torus(major_radius=2.0, minor_radius=0.5, major_sections=48, minor_sections=24)
+    return {"box": (box, 0), "torus": (torus, 1)}
+
+
+@pytest.mark.parametrize("shape", ["box", "torus"])
+@pytest.mark.parametrize("ext", [".stl", ".obj", ".ply", ".off", ".glb", "ascii.stl"])
+def test_load_mesh_formats(tmp_path, shapes, shape, ext):
+    mesh, genus = shapes[shape]
+    path = tmp_path / f"{shape}{'_' + ext if ext.startswith('ascii') else ext}"
+    file_type = "stl_ascii" if ext.startswith("ascii") else ext[1:]
+    data = mesh.export(file_type=file_type)
+    path.write_bytes(data if isinstance(data, bytes) else data.encode())
+    part = load_part(path, units="mm")
+    rel = 1e-6  # STL stores float32, OBJ and OFF about 8-10 digits
+    assert part.meta["genus"] == genus
+    assert part.meta["volume"] == pytest.approx(mesh.volume, rel=rel)
+    assert part.meta["area"] == pytest.approx(mesh.area, rel=rel)
+    assert part.meta["units"] == "mm"
+    assert part.meta["format"] == ("stl" if "stl" in ext else ext[1:])
+    assert len(part.faces) == len(mesh.faces) and len(part.vertices) == len(mesh.vertices)
+    _assert_closed_outward(part)
+
+
+def test_unknown_unit_is_a_caller_error(tmp_path, shapes):
+    path = tmp_path / "box.stl"
+    shapes["box"][0].export(path)
+    with pytest.raises(ValueError, match="unknown length unit"):
+        load_part(path, units="furlong")
+    assert load_part(path).meta["units"] is None
+
+
+def test_part_meta_survives_npz_round_trip(tmp_path, shapes):
+    path = tmp_path / "torus.ply"
+    shapes["torus"][0].export(path)
+    part = load_part(path)
+    part.save(tmp_path / "part.npz")
+    back = Part.load(tmp_path / "part.npz")
+    assert back.meta == part.meta
+    np.testing.assert_array_equal(back.faces, part.faces)
+
+
+# ---------------------------------------------------------------------------------------------
+# good inputs: CAD (STEP / IGES through gmsh + OpenCASCADE)
+# ---------------------------------------------------------------------------------------------
+
+PLATE = dict(size=(40.0, 20.0, 5.0), holes=[(10.0, 10.0, 3.0), (30.0, 10.0, 4.0)])
+
+
+def _plate_exact():
+    (a, b, c), holes = PLATE["size"], PLATE["holes"]
+    volume = a * b * c - sum(math.pi * r * r * c for _, _, r in holes)
+    area = (
+        2 * (a * b - sum(math.pi * r * r for _, _, r in holes))
+        + 2 * (a + b) * c
+        + sum(2 * math.pi * r * c for _, _, r in holes)
+    )
+    return volume, area
+
+
+@pytest.fixture(scope="session")
+def cad_files(tmp_path_factory):
+    """A plate with two through holes (genus 2) and a torus (genus 1), as STEP and IGES."""
+    folder = tmp_path_factory.mktemp("cad")
+    from polycubenet.io import quiet_stdout
+
+    with gmsh_session() as gmsh:
+        occ = gmsh.model.occ
+        gmsh.model.add("plate")
+        a, b, c = PLATE["size"]
+        plate = occ.addBox(0, 0, 0, a, b, c)
+        cyl = [(3, occ.addCylinder(x, y, -1, 0, 0, c + 2, r)) for x, y, r in PLATE["holes"]]
+        occ.cut([(3, plate)], cyl)
+        occ.synchronize()
+        with quiet_stdout():
+            gmsh.write(str(folder / "plate.step"))
+            gmsh.write(str(folder / "plate.igs"))
+        gmsh.model.remove()
+        gmsh.model.add("torus")
+        occ.addTorus(0, 0, 0, 10.0, 3.0)
+        occ.synchronize()
+        with quiet_stdout():
+            gmsh.write(str(folder / "torus.stp"))
+        gmsh.model.remove()
+    return folder
+
+
+@pytest.mark.parametrize("name", ["plate.step", "plate.igs"])
+def test_load_cad_plate(cad_files, name):
+    part = load_part(cad_files / name)
+    volume, area = _plate_exact()
+    assert part.meta["genus"] == 2
+    assert part.meta["volume"] == pytest.approx(volume, rel=0.01)
+    assert part.meta["area"] == pytest.approx(area, rel=0.01)
+    assert part.meta["units"] == "mm" and part.meta["file_units"] == "mm"
+    assert part.meta["repairs"] == []
+    assert np.allclose(part.vertices.min(0), 0, atol=1e-6) and np.allclose(
+        part.vertices.max(0), PLATE["size"], atol=1e-6
+    )
+    _assert_closed_outward(part)
+
+
+def test_load_cad_torus_units_and_mesh_size(cad_files):
+    coarse = load_part(cad_files / "torus.stp")
+    assert coarse.meta["genus"] == 1
+    exact = 2 * math.pi**2 * 10.0 * 3.0**2
+    assert coarse.meta["volume"] == pytest.approx(exact, rel=0.02)
+    fine = load_part(cad_files / "torus.stp", mesh_size=0.5)
+    assert len(fine.faces) > 2 * len(coarse.faces)
+    assert abs(fine.meta["volume"] - exact) < abs(coarse.meta["volume"] - exact)
+    metres = load_part(cad_files / "torus.stp", units="m")
+    assert metres.meta["units"] == "m" and metres.meta["file_units"] == "mm"
+    assert metres.meta["bbox_diagonal"] == pytest.approx(coarse.meta["bbox_diagonal"] / 1000, rel=1e-6)
+
+
+def test_cad_loading_is_thread_safe_and_respects_an_outer_gmsh(cad_files):
+    with ThreadPoolExecutor(2) as pool:
+        parts = list(pool.map(lambda n: load_part(cad_files / n), ["plate.step", "torus.stp", "plate.igs"]))
+    assert [p.meta["genus"] for p in parts] == [2, 1, 2]
+    assert threading.current_thread() is threading.main_thread()
+    import gmsh
+
+    gmsh.initialize([], readConfigFiles=False, interruptible=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add("mine")
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 123.0)
+        load_part(cad_files / "torus.stp")
+        assert gmsh.isInitialized()
+        assert gmsh.model.getCurrent() == "mine"
+        assert gmsh.option.getNumber("Mesh.MeshSizeMax") == 123.0
+    finally:
+        gmsh.finalize()
+
+
+# ---------------------------------------------------------------------------------------------
+# hex meshes
+# ---------------------------------------------------------------------------------------------
+
+
+def _hex_grid(n=3, seed=0) -> HexMesh:
+    """(n-1)^3 jittered hexes in VTK order, far from the origin (to exercise float precision)."""
+    rng = np.random.default_rng(seed)
+    axis = np.linspace(0.0, 1.0, n)
+    pts = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    pts = pts + rng.normal(scale=0.02, size=pts.shape) + np.array([123.456789, -98.7654321, 1e-3])
+    idx = np.arange(n**3).reshape(n, n, n)
+    i, j, k = (g.ravel() for g in np.meshgrid(*[np.arange(n - 1)] * 3, indexing="ij"))
+    hexes = np.stack(
+        [
+            idx[i, j, k],
+            idx[i + 1, j, k],
+            idx[i + 1, j + 1, k],
+            idx[i, j + 1, k],
+            idx[i, j, k + 1],
+            idx[i + 1, j, k + 1],
+            idx[i + 1, j + 1, k + 1],
+            idx[i, j + 1, k + 1],
+        ],
+        axis=1,
+    )
+    boundary = np.any((np.stack(np.unravel_index(np.arange(n**3), (n, n, n)), 1) % (n - 1)) == 0, axis=1)
+    return HexMesh(points=pts, hexes=hexes, boundary=boundary)
+
+
+#: coordinates read back must match to this tolerance, relative to the largest coordinate
+_PRECISION = {".vtu": 0.0, ".vtk": 0.0, ".msh": 0.0, ".mesh": 0.0, ".inp": 0.0, ".bdf": 1e-10}
+
+
+@pytest.mark.parametrize("ext", list(SUPPORTED_HEX_FORMATS))
+def test_hex_round_trip(tmp_path, ext):
+    mesh = _hex_grid()
+    sj = np.linspace(0.5, 1.0, len(mesh.hexes))
+    path = tmp_path / f"hex{ext}"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert write_hex(mesh, path, cell_data={"sj": sj}) == path
+    stores_cells = ext in (".vtu", ".vtk", ".msh")
+    assert any("cannot store cell data" in str(w.message) for w in caught) != stores_cells
+    back = read_hex(path)
+    assert back.points.shape == mesh.points.shape
+    assert np.abs(back.points - mesh.points).max() <= _PRECISION[ext] * np.abs(mesh.points).max()
+    np.testing.assert_array_equal(back.hexes, mesh.hexes)
+    vol = hex_volumes(back.points, back.hexes)
+    assert (vol > 0).all()
+    np.testing.assert_allclose(vol, hex_volumes(mesh.points, mesh.hexes), rtol=1e-6)
+    assert ("sj" in back.meta["cell_data"]) == stores_cells
+    if ext in (".vtu", ".vtk"):
+        np.testing.assert_array_equal(back.boundary, mesh.boundary)
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]  # no temporary file left behind
+
+
+def test_write_hex_rejects_unknown_extension_and_is_atomic(tmp_path):
+    mesh = _hex_grid()
+    with pytest.raises(ValueError, match=r"\.vtu.*\.bdf"):
+        write_hex(mesh, tmp_path / "hex.stl")
+    with pytest.raises(ValueError, match="supported"):
+        read_hex(tmp_path / "hex.foo")
+    with pytest.raises(ValueError, match="4 values for 8 hexes"):
+        write_hex(mesh, tmp_path / "hex.vtu", cell_data={"sj": np.ones(4)})
+    with pytest.raises(KeyError):  # meshio fails half-way: neither the target nor a temp file remains
+        write_hex(mesh, tmp_path / "hex.vtu", cell_data={"bad": np.array([object()] * 8)})
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_hex_volumes_exact():
+    unit = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
+    hexes = np.arange(8)[None]
+    assert hex_volumes(unit, hexes)[0] == pytest.approx(1.0, abs=1e-14)
+    a = np.array([[2.0, 0.3, 0.0], [0.1, 1.5, 0.2], [0.0, -0.4, 0.7]])
+    assert hex_volumes(unit @ a.T, hexes)[0] == pytest.approx(np.linalg.det(a), rel=1e-12)
+    frustum = np.array(
+        [
+            [-1, -1, 0],
+            [1, -1, 0],
+            [1, 1, 0],
+            [-1, 1, 0],
+            [-0.5, -0.5, 1],
+            [0.5, -0.5, 1],
+            [0.5, 0.5, 1],
+            [-0.5, 0.5, 1],
+        ],
+        float,
+    )
+    assert hex_volumes(frustum, hexes)[0] == pytest.approx(7 / 3, rel=1e-12)
+    inverted = unit[[4, 5, 6, 7, 0, 1, 2, 3]]
+    assert hex_volumes(inverted, hexes)[0] == pytest.approx(-1.0)
+
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "parts"
+
+
+def _example_rows() -> list[tuple[str, int, int]]:
+    """(name, genus, STL triangles) from the table in examples/parts/README.md."""
+    readme = EXAMPLES / "README.md"
+    if not readme.exists():
+        return []
+    rows = []
+    for line in readme.read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) >= 4 and cells[0].startswith("`"):
+            rows.append((cells[0].strip("`"), int(cells[2]), int(cells[3])))
+    return rows
+
+
+@pytest.mark.skipif(not _example_rows(), reason="examples/parts not generated (python scripts/make_examples.py)")
+def test_example_parts_match_their_table():
+    rows = _example_rows()
+    assert len(rows) >= 8 and {g for _, g, _ in rows} >= {0, 1, 2, 3, 4}
+    for name, genus, n_tri in rows:
+        part = load_part(EXAMPLES / f"{name}.stl")
+        assert (part.meta["genus"], len(part.faces)) == (genus, n_tri), name
+        assert not any("reoriented" in r or "inside-out" in r for r in part.meta["repairs"])
+    name, genus, _ = rows[-1]
+    assert load_part(EXAMPLES / f"{name}.step").meta["genus"] == genus
+
+
+def test_write_surface_round_trip(tmp_path, shapes):
+    from polycubenet.io import write_surface
+
+    mesh = shapes["torus"][0]
+    for ext in (".stl", ".obj", ".ply", ".off", ".glb"):
+        part = load_part(write_surface(mesh.vertices, mesh.faces, tmp_path / f"t{ext}"))
+        assert part.meta["genus"] == 1 and len(part.faces) == len(mesh.faces)
+    with pytest.raises(ValueError, match="cannot write a surface"):
+        write_surface(mesh.vertices, mesh.faces, tmp_path / "t.step")
+
+
+def test_supported_format_tables():
+    assert set(SUPPORTED_HEX_FORMATS) == {".vtu", ".vtk", ".mesh", ".inp", ".msh", ".bdf"}
+    assert {".stl", ".obj", ".ply", ".off", ".glb", ".step", ".stp", ".iges", ".igs"} == set(SUPPORTED_PART_FORMATS)
