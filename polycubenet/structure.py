@@ -1,0 +1,402 @@
+"""Recover an explicit polycube (grid planes + occupied cells) from a polycube point cloud.
+
+The cloud is what the model generates (or the classical path builds): points with
+normals in the part's canonical frame, lying on an axis-aligned polycube surface
+with noise.  :func:`extract` works in four steps:
+
+1. **Axis labels** from normals: the dominant axis and its sign; points whose normal
+   is more than ``label_cone_deg`` from every axis are ignored.
+2. **Planes per axis** by 1-D clustering of the labelled points' coordinate along
+   their axis: a Gaussian kernel density with the cloud's own noise level as
+   bandwidth, its peaks as plane candidates, near-duplicates merged, peaks with too
+   few points dropped; each plane's coordinate is the trimmed mean of its points.
+3. **Occupied cells** from face evidence.  Every labelled point votes on the grid
+   face it lies on (plane, footprint cell) with its normal's sign (``+a``: solid
+   before the plane, empty after).  Six scans (each axis, both directions) walk the
+   cells from the outside and switch state where a face has votes; the cells take
+   the majority, and a local search then flips cells while that lowers an explicit
+   cost (votes contradicted + boundary faces with too few points for their area).
+4. **Validation** (:class:`~polycubenet.errors.PolycubeError` with the reason):
+   a valid manifold solid (no edge- or vertex-only contacts, one component, no
+   cavity), genus equal to the part's, the cloud within a tolerance of the polycube
+   surface (Chamfer) and the surface covered by the cloud.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+from scipy.spatial import cKDTree
+
+from .data import Polycube
+from .errors import PolycubeError
+from .polycube import check_occupancy, compress, polycube_surface, solid_genus
+
+
+@dataclasses.dataclass(frozen=True)
+class ExtractConfig:
+    """Parameters of :func:`extract` (lengths relative to the canonical diagonal 1)."""
+
+    #: points whose normal is further than this from every axis get no label
+    label_cone_deg: float = 30.0
+    #: kernel bandwidth = max(noise estimate, min_bandwidth)
+    min_bandwidth: float = 1e-3
+    #: planes closer than ``merge_sigmas`` bandwidths are one plane
+    merge_sigmas: float = 2.0
+    #: a plane needs at least this many points (absolute) ...
+    min_plane_points: int = 4
+    #: ... and at least this fraction of the points of its axis
+    min_plane_fraction: float = 0.002
+    #: a boundary face is expected to carry at least this fraction of ``density * area`` points
+    coverage_fraction: float = 0.25
+    #: Chamfer tolerance: 95th percentile of cloud -> surface distance, in units of spacing
+    chamfer_spacings: float = 1.5
+    #: a surface sample counts as covered when a cloud point is within this many spacings
+    cover_spacings: float = 2.5
+    #: minimum covered fraction of the polycube surface
+    min_coverage: float = 0.9
+    #: local-search sweeps
+    polish_sweeps: int = 6
+
+
+@dataclasses.dataclass
+class _Evidence:
+    """Votes per grid face: ``plus[a]``/``minus[a]`` have shape of the face array along axis ``a``."""
+
+    plus: list[np.ndarray]
+    minus: list[np.ndarray]
+    expected: list[np.ndarray]
+
+
+def axis_labels(normals: np.ndarray, cone_deg: float = 30.0) -> tuple[np.ndarray, np.ndarray]:
+    """Dominant axis ``(M,) int`` (-1 when unlabelled) and sign ``(M,) int8`` of each normal."""
+    n = np.asarray(normals, dtype=np.float64)
+    norm = np.linalg.norm(n, axis=1)
+    n = np.divide(n, norm[:, None], out=np.zeros_like(n), where=norm[:, None] > 0)
+    axis = np.argmax(np.abs(n), axis=1)
+    comp = n[np.arange(len(n)), axis]
+    ok = np.abs(comp) >= np.cos(np.radians(cone_deg))
+    return np.where(ok, axis, -1), np.sign(comp).astype(np.int8)
+
+
+def point_spacing(points: np.ndarray) -> float:
+    """Median nearest-neighbour distance of ``points (M, 3)``."""
+    d, _ = cKDTree(points).query(points, k=2)
+    return float(np.median(d[:, 1]))
+
+
+def noise_level(points: np.ndarray, axis: np.ndarray, k: int = 10) -> float:
+    """Robust off-plane noise: median over labelled points of the spread of their axis
+    coordinate among their ``k`` nearest neighbours with the same label."""
+    spreads = []
+    for a in range(3):
+        idx = np.flatnonzero(axis == a)
+        if len(idx) <= k:
+            continue
+        P = points[idx]
+        _, nn = cKDTree(P).query(P, k=k)
+        c = P[:, a][nn]
+        med = np.median(c, axis=1, keepdims=True)
+        spreads.append(1.4826 * np.median(np.abs(c - med), axis=1))
+    if not spreads:
+        return 0.0
+    return float(np.median(np.concatenate(spreads)))
+
+
+def cluster_planes(coords: np.ndarray, bandwidth: float, min_points: int, merge: float) -> np.ndarray:
+    """Plane coordinates ``(P,)`` (sorted) from 1-D ``coords`` by kernel-density peaks.
+
+    Parameters
+    ----------
+    coords : (K,) float64
+    bandwidth : float, Gaussian kernel width
+    min_points : int, peaks with fewer points within ``2.5 * bandwidth`` are dropped
+    merge : float, peaks closer than this are merged (weighted by their point counts)
+    """
+    coords = np.sort(np.asarray(coords, dtype=np.float64))
+    if len(coords) == 0:
+        return coords
+    lo, hi = coords[0] - 4 * bandwidth, coords[-1] + 4 * bandwidth
+    step = bandwidth / 4.0
+    nb = int(np.ceil((hi - lo) / step)) + 1
+    hist = np.bincount(((coords - lo) / step).astype(np.int64), minlength=nb).astype(np.float64)
+    dens = gaussian_filter1d(hist, sigma=2.0, mode="constant")  # half the bandwidth: over-segment,
+    # the spurious planes are dropped by reduce_polycube once the occupancy is known
+    interior = (dens[1:-1] > dens[:-2]) & (dens[1:-1] >= dens[2:])
+    peaks = lo + (np.flatnonzero(interior) + 1 + 0.5) * step
+    planes, weights = [], []
+    for p in peaks:
+        sel = coords[np.abs(coords - p) <= 1.5 * bandwidth]
+        if len(sel) < min_points:
+            continue
+        # trimmed mean around the peak, iterated once for sub-bin accuracy
+        c = sel.mean()
+        sel = coords[np.abs(coords - c) <= 1.5 * bandwidth]
+        planes.append(sel.mean() if len(sel) else c)
+        weights.append(len(sel))
+    if not planes:
+        return np.zeros(0)
+    order = np.argsort(planes)
+    planes, weights = list(np.asarray(planes)[order]), list(np.asarray(weights, float)[order])
+    merged_p, merged_w = [planes[0]], [weights[0]]
+    for p, w in zip(planes[1:], weights[1:]):
+        if p - merged_p[-1] < merge:
+            tw = merged_w[-1] + w
+            merged_p[-1] = (merged_p[-1] * merged_w[-1] + p * w) / tw
+            merged_w[-1] = tw
+        else:
+            merged_p.append(p)
+            merged_w.append(w)
+    return np.asarray(merged_p)
+
+
+def _face_evidence(points, axis, sign, grid, density, plane_tol) -> _Evidence:
+    """Votes of the labelled points on the grid faces, and the points each face should carry."""
+    shape = tuple(len(g) - 1 for g in grid)
+    plus, minus, expected = [], [], []
+    for a in range(3):
+        b, c = [x for x in range(3) if x != a]
+        fshape = list(shape)
+        fshape[a] += 1  # faces along axis a: one more plane than cells
+        vp, vm = np.zeros(fshape), np.zeros(fshape)
+        sel = np.flatnonzero(axis == a)
+        if len(sel):
+            P = points[sel]
+            planes = grid[a]
+            i = np.clip(np.searchsorted(planes, P[:, a]), 1, len(planes) - 1)
+            near = np.where(np.abs(P[:, a] - planes[i - 1]) <= np.abs(P[:, a] - planes[i]), i - 1, i)
+            ok = np.abs(P[:, a] - planes[near]) <= plane_tol
+            j = np.searchsorted(grid[b], P[:, b]) - 1
+            k = np.searchsorted(grid[c], P[:, c]) - 1
+            ok &= (j >= 0) & (j < shape[b]) & (k >= 0) & (k < shape[c])
+            idx = [None, None, None]
+            idx[a], idx[b], idx[c] = near[ok], j[ok], k[ok]
+            s = sign[sel][ok]
+            np.add.at(vp, (idx[0][s > 0], idx[1][s > 0], idx[2][s > 0]), 1.0)
+            np.add.at(vm, (idx[0][s < 0], idx[1][s < 0], idx[2][s < 0]), 1.0)
+        area = np.multiply.outer(np.diff(grid[b]), np.diff(grid[c]))
+        exp = np.expand_dims(area, a) * density * np.ones(fshape)
+        plus.append(vp)
+        minus.append(vm)
+        expected.append(exp)
+    return _Evidence(plus, minus, expected)
+
+
+def _scan(ev: _Evidence, shape, threshold: float, frac: float) -> np.ndarray:
+    """Six directional scans; returns the vote count of 'occupied' per cell (0..6).
+
+    A face switches the state when it has at least ``threshold`` votes and at least
+    ``frac`` of the points its area should carry (so a few stray points cannot
+    create a large face)."""
+    votes = np.zeros(shape, dtype=np.int64)
+    for a in range(3):
+        n = shape[a]
+        vp = np.moveaxis(ev.plus[a], a, 0)
+        vm = np.moveaxis(ev.minus[a], a, 0)
+        need = np.maximum(threshold, frac * np.moveaxis(ev.expected[a], a, 0))
+        strong = (vp + vm) >= need
+        enter = strong & (vm > vp)  # -a normal at the plane: solid after it (scanning +a)
+        leave = strong & (vp > vm)
+        # forward scan along +a
+        state = np.zeros(vp.shape[1:], dtype=bool)
+        fwd = np.zeros((n,) + vp.shape[1:], dtype=bool)
+        for i in range(n):
+            state = np.where(enter[i], True, np.where(leave[i], False, state))
+            fwd[i] = state
+        # backward scan along -a: crossing a +a face enters the solid
+        state = np.zeros(vp.shape[1:], dtype=bool)
+        bwd = np.zeros_like(fwd)
+        for i in range(n, 0, -1):
+            state = np.where(leave[i], True, np.where(enter[i], False, state))
+            bwd[i - 1] = state
+        votes += np.moveaxis(fwd, 0, a).astype(np.int64) + np.moveaxis(bwd, 0, a).astype(np.int64)
+    return votes
+
+
+def _face_costs(ev: _Evidence, frac: float):
+    """Per face and axis: cost of (no boundary, +a boundary, -a boundary)."""
+    out = []
+    for a in range(3):
+        vp, vm, e = ev.plus[a], ev.minus[a], ev.expected[a] * frac
+        c0 = vp + vm
+        cplus = vm + np.maximum(0.0, e - vp)
+        cminus = vp + np.maximum(0.0, e - vm)
+        out.append((c0, cplus, cminus))
+    return out
+
+
+def _total_cost(occ: np.ndarray, costs) -> float:
+    total = 0.0
+    for a in range(3):
+        pad = [(0, 0)] * 3
+        pad[a] = (1, 1)
+        o = np.pad(occ, pad).astype(np.int8)
+        before = np.take(o, np.arange(o.shape[a] - 1), axis=a)
+        after = np.take(o, np.arange(1, o.shape[a]), axis=a)
+        b = before - after
+        c0, cp, cm = costs[a]
+        total += float(np.where(b == 0, c0, np.where(b > 0, cp, cm)).sum())
+    return total
+
+
+def _cell_flip_delta(occ: np.ndarray, costs, cell) -> float:
+    """Change of the total cost when ``cell`` flips (only its 6 faces change)."""
+    delta = 0.0
+    new = not occ[cell]
+    for a in range(3):
+        c0, cp, cm = costs[a]
+        for side in (0, 1):  # face before (index i) and after (index i+1) the cell
+            fidx = list(cell)
+            fidx[a] = cell[a] + side
+            nb = list(cell)
+            nb[a] = cell[a] - 1 if side == 0 else cell[a] + 1
+            inside = 0 <= nb[a] < occ.shape[a]
+            other = bool(occ[tuple(nb)]) if inside else False
+            for val, sgn in ((bool(occ[cell]), -1.0), (new, 1.0)):
+                b = (other - val) if side == 0 else (val - other)
+                c = c0 if b == 0 else (cp if b > 0 else cm)
+                delta += sgn * c[tuple(fidx)]
+    return float(delta)
+
+
+def _polish(occ: np.ndarray, costs, sweeps: int) -> np.ndarray:
+    """Flip single cells while that lowers the cost; once the solid is valid it must stay valid."""
+    occ = occ.copy()
+    valid = check_occupancy(occ) is None
+    for _ in range(sweeps):
+        changed = False
+        for cell in np.ndindex(occ.shape):
+            if _cell_flip_delta(occ, costs, cell) >= -1e-9:
+                continue
+            occ[cell] = not occ[cell]
+            now_valid = check_occupancy(occ) is None
+            if now_valid or not valid:
+                valid, changed = now_valid, True
+            else:
+                occ[cell] = not occ[cell]
+        if not changed:
+            break
+    return occ
+
+
+def refit_planes(points, axis, grid, occ, tol) -> list[np.ndarray]:
+    """Move each plane to the mean coordinate of the labelled points within ``tol`` of it."""
+    out = []
+    for a in range(3):
+        g = grid[a].copy()
+        c = points[axis == a, a]
+        for i in range(len(g)):
+            sel = c[np.abs(c - g[i]) <= tol]
+            if len(sel):
+                g[i] = sel.mean()
+        if np.all(np.diff(g) > 0):
+            out.append(g)
+        else:  # refitting would swap planes: keep the clustered positions
+            out.append(grid[a])
+    return out
+
+
+def surface_distances(poly: Polycube, points: np.ndarray, spacing: float, seed: int = 0) -> dict:
+    """Cloud -> polycube surface distances and the covered fraction of the surface."""
+    V, F = polycube_surface(poly.xs, poly.ys, poly.zs, poly.occupancy)
+    from .sampling import uniform_sample
+
+    s = uniform_sample(V, F, max(4 * len(points), 20000), np.random.default_rng(seed))
+    d_cloud, _ = cKDTree(s.points).query(points)
+    d_surf, _ = cKDTree(points).query(s.points)
+    return {
+        "cloud_to_surface_p95": float(np.percentile(d_cloud, 95)),
+        "cloud_to_surface_mean": float(d_cloud.mean()),
+        "surface_to_cloud_mean": float(d_surf.mean()),
+        "chamfer": float(d_cloud.mean() + d_surf.mean()),
+        "spacing": float(spacing),
+        "_d_surf": d_surf,
+    }
+
+
+def extract(
+    points: np.ndarray,
+    normals: np.ndarray,
+    *,
+    genus: int | None = None,
+    config: ExtractConfig = ExtractConfig(),
+    part: str | None = None,
+    validate: bool = True,
+) -> Polycube:
+    """Recover the polycube from a cloud (see the module docstring).
+
+    Parameters
+    ----------
+    points : (M, 3) float64, in the canonical frame
+    normals : (M, 3) float64
+    genus : int or None, the part's genus; when given the polycube must match it
+    config : ExtractConfig
+    part : str or None, named in error messages
+    validate : bool, run the Chamfer/coverage/genus checks
+
+    Returns
+    -------
+    Polycube, with ``meta``: genus, spacing, noise, the validation metrics
+
+    Raises
+    ------
+    PolycubeError
+        with the failed check in its message.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    normals = np.asarray(normals, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
+        raise ValueError(f"points and normals must both be (M, 3); got {points.shape} and {normals.shape}")
+    if len(points) < 32:
+        raise PolycubeError(f"too few points to extract a polycube ({len(points)})", part)
+    axis, sign = axis_labels(normals, config.label_cone_deg)
+    spacing = point_spacing(points)
+    noise = noise_level(points, axis)
+    bw = max(noise, config.min_bandwidth)
+
+    grid = []
+    for a in range(3):
+        c = points[axis == a, a]
+        min_pts = max(config.min_plane_points, int(config.min_plane_fraction * len(c)))
+        planes = cluster_planes(c, bw, min_pts, config.merge_sigmas * bw)
+        if len(planes) < 2:
+            raise PolycubeError(f"found {len(planes)} plane(s) normal to axis {'xyz'[a]}; a polycube needs >= 2", part)
+        grid.append(planes)
+    shape = tuple(len(g) - 1 for g in grid)
+
+    # points per unit area: Poisson-disk-like clouds have about one point per spacing^2 * sqrt(3)/2
+    density = 1.0 / (np.sqrt(3.0) / 2.0 * spacing**2)
+    ev = _face_evidence(points, axis, sign, grid, density, plane_tol=max(3.0 * bw, 0.5 * spacing))
+    votes = _scan(ev, shape, threshold=2, frac=0.5 * config.coverage_fraction)
+    occ = votes >= 4  # majority of the six scans; a 3-3 tie starts empty and is settled by the polish
+    costs = _face_costs(ev, config.coverage_fraction)
+    occ = _polish(occ, costs, config.polish_sweeps)
+
+    reason = check_occupancy(occ)
+    if reason is not None:
+        raise PolycubeError(f"extracted occupancy is not a valid polycube: {reason}", part)
+    cost = _total_cost(occ, costs)
+    grid, occ = compress(grid, occ)
+    grid = refit_planes(points, axis, grid, occ, tol=max(2.5 * bw, 0.5 * spacing))
+    shape = occ.shape
+    poly = Polycube(grid[0], grid[1], grid[2], occ, meta={})
+    g = solid_genus(occ)
+    poly.meta.update(genus=int(g), spacing=spacing, noise=noise, grid_shape=list(shape), cost=cost)
+    if validate:
+        if genus is not None and g != genus:
+            raise PolycubeError(f"polycube genus {g} differs from the part's genus {genus}", part)
+        dist = surface_distances(poly, points, spacing)
+        covered = float((dist.pop("_d_surf") <= config.cover_spacings * spacing).mean())
+        dist["coverage"] = covered
+        poly.meta.update(dist)
+        if dist["cloud_to_surface_p95"] > config.chamfer_spacings * spacing + 3.0 * noise:
+            raise PolycubeError(
+                f"cloud is far from the extracted polycube (95th percentile {dist['cloud_to_surface_p95']:.4f} "
+                f"> {config.chamfer_spacings * spacing + 3.0 * noise:.4f})",
+                part,
+            )
+        if covered < config.min_coverage:
+            raise PolycubeError(f"the cloud covers only {covered:.1%} of the polycube surface", part)
+    return poly

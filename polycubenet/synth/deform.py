@@ -1,0 +1,542 @@
+"""Random smooth invertible deformations that turn a polycube into a "CAD" shape.
+
+A :class:`DeformationMap` is a composition of elementary maps of R^3, applied in list
+order, each a small object with JSON-able parameters (so a pair records its map
+exactly and :meth:`DeformationMap.from_dict` rebuilds it).  Families:
+
+``round_hole``
+    a through-hole or pocket of rectangular section pushed toward a cylinder: in the
+    hole's cross-section, after scaling the rectangle to a unit square, each point
+    moves along its ray from the hole axis so that the square becomes a (super)circle;
+    the effect fades to identity a little away from the hole.  Ray-wise monotone, so
+    a bijection.
+``round_edge``
+    a fillet (square corner -> quarter circle) or chamfer (corner -> 45 degree cut) of
+    a convex edge (of the bounding box, a step, an extruded profile), as a ray-wise
+    radial map in the quadrant within ``radius`` of both faces, fading out within the
+    four grid cells around the edge.  Bijective.
+``ramp``
+    heights scaled down along a direction by a C1 piecewise-linear profile: the top
+    face becomes a planar ramp (slope up to ~35 degrees) with smooth ends.
+``taper``, ``shear``, ``twist``, ``bend``
+    the classical Barr deformations (bend: the part is wrapped around a circle).
+``ffd``
+    a free-form lattice: Bernstein (degree 3) control-point displacements over the
+    bounding box, small enough to be injective (mild organic bending).
+
+Every map is smooth except along measure-zero sets (the diagonals of the rounding
+maps), where it stays continuous and bijective.  :func:`jacobian_determinants`
+estimates ``det J`` with central differences; :func:`check_invertible` samples many
+points in the bounding box and rejects a map whose determinant falls below a bound.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, ClassVar
+
+import numpy as np
+
+#: central-difference step of the Jacobian (the polycube's diagonal is 1)
+FD_STEP = 1e-5
+#: a deformation whose Jacobian determinant falls below this anywhere sampled is rejected
+MIN_DET = 0.005
+
+
+def _smoothstep(t: np.ndarray) -> np.ndarray:
+    t = np.clip(t, 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def _soft_ramp(t: np.ndarray, e: float) -> np.ndarray:
+    """C1 ramp from 0 (t <= 0) to 1 (t >= 1), linear on [e, 1 - e] with slope 1 / (1 - e)."""
+    t = np.clip(t, 0.0, 1.0)
+    k = 1.0 / (2.0 * e * (1.0 - e))
+    return np.where(
+        t < e, k * t * t, np.where(t > 1.0 - e, 1.0 - k * (1.0 - t) ** 2, (t - 0.5 * e) / (1.0 - e))
+    )
+
+
+def _pnorm(u: np.ndarray, v: np.ndarray, p: float) -> np.ndarray:
+    """``(|u|^p + |v|^p)^(1/p)`` computed stably (inf = max)."""
+    au, av = np.abs(u), np.abs(v)
+    m = np.maximum(au, av)
+    if np.isinf(p):
+        return m
+    safe = np.where(m > 0, m, 1.0)
+    a, b = au / safe, av / safe  # in [0, 1]: no overflow
+    if p >= 2 and float(np.log2(p)).is_integer():  # repeated squaring, much faster than pow
+        for _ in range(int(np.log2(p))):
+            a, b = a * a, b * b
+        s = a + b
+    else:
+        s = a**p + b**p
+    return m * s ** (1.0 / p)
+
+
+class ElementaryMap:
+    """Base class: ``__call__(X : (N, 3)) -> (N, 3)`` and JSON-able ``params``."""
+
+    kind: ClassVar[str] = ""
+    registry: ClassVar[dict[str, type["ElementaryMap"]]] = {}
+
+    def __init_subclass__(cls, **kw):
+        super().__init_subclass__(**kw)
+        if cls.kind:
+            ElementaryMap.registry[cls.kind] = cls
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def to_dict(self) -> dict:
+        out = {"kind": self.kind}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            out[f.name] = np.asarray(v).tolist() if isinstance(v, np.ndarray) else v
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ElementaryMap":
+        sub = ElementaryMap.registry[d["kind"]]
+        kwargs = {}
+        for f in dataclasses.fields(sub):
+            v = d[f.name]
+            kwargs[f.name] = np.asarray(v, dtype=np.float64) if isinstance(v, list) else v
+        return sub(**kwargs)
+
+
+def _other_axes(axis: int) -> tuple[int, int]:
+    return (axis + 1) % 3, (axis + 2) % 3
+
+
+@dataclasses.dataclass
+class RoundHole(ElementaryMap):
+    """Push a rectangular hole along ``axis`` toward an elliptic cylinder.
+
+    Parameters
+    ----------
+    axis : int
+    center : (3,) hole axis passes through this point (the ``axis`` component unused)
+    half : (2,) half sizes of the hole section along the two other axes (cyclic order)
+    p : float, exponent of the norm whose unit ball the square maps from (large = sharper)
+    strength : float in (0, 1], 1 = fully round
+    fade : float > 0, the effect vanishes at normalized radius ``1 + fade``
+    """
+
+    kind: ClassVar[str] = "round_hole"
+    axis: int
+    center: np.ndarray
+    half: np.ndarray
+    p: float
+    strength: float
+    fade: float
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        b, c = _other_axes(self.axis)
+        u = (X[:, b] - self.center[b]) / self.half[0]
+        v = (X[:, c] - self.center[c]) / self.half[1]
+        Y = X.copy()
+        near = np.maximum(np.abs(u), np.abs(v)) < 1.0 + self.fade  # rho >= sup norm: outside is identity
+        if not near.any():
+            return Y
+        u, v = u[near], v[near]
+        r2 = np.hypot(u, v)
+        rho = _pnorm(u, v, self.p)
+        w = 1.0 - _smoothstep((rho - 1.0) / self.fade)
+        ratio = np.divide(rho, r2, out=np.ones_like(r2), where=r2 > 0)
+        f = 1.0 + self.strength * w * (ratio - 1.0)
+        Y[near, b] = self.center[b] + u * f * self.half[0]
+        Y[near, c] = self.center[c] + v * f * self.half[1]
+        return Y
+
+
+@dataclasses.dataclass
+class RoundEdge(ElementaryMap):
+    """Fillet or chamfer the convex edge along ``axis`` at ``corner``.
+
+    In the quadrant within ``radius`` of both faces (origin ``corner - radius * signs``),
+    each point moves along its ray from the origin so that the square corner becomes a
+    quarter circle (fillet) or a 45 degree cut (chamfer); the effect fades out between
+    ``radius`` and ``radius * (1 + fade)`` (sup norm from the origin).  Ray-wise
+    monotone, hence a bijection; identity outside that small region.
+
+    Parameters
+    ----------
+    axis : int, the edge direction
+    corner : (2,) the edge's coordinates on the two other axes (cyclic order)
+    signs : (2,) +1 / -1, the outward direction of the two faces meeting at the edge
+    radius : float, fillet radius / chamfer leg
+    style : str, ``fillet`` or ``chamfer``
+    fade : float > 0
+    """
+
+    kind: ClassVar[str] = "round_edge"
+    axis: int
+    corner: np.ndarray
+    signs: np.ndarray
+    radius: float
+    style: str
+    fade: float
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        if self.style not in ("fillet", "chamfer"):
+            raise ValueError(f"unknown edge style {self.style!r}")
+        b, c = _other_axes(self.axis)
+        r = self.radius
+        # quadrant coordinates: 0 at the centre of the rounding, positive toward the outside
+        u = self.signs[0] * (X[:, b] - self.corner[0]) + r
+        v = self.signs[1] * (X[:, c] - self.corner[1]) + r
+        ninf = np.maximum(u, v)
+        inside = (u > 0) & (v > 0) & (ninf < r * (1.0 + self.fade))
+        Y = X.copy()
+        if not inside.any():
+            return Y
+        u, v, ninf = u[inside], v[inside], ninf[inside]
+        target = np.hypot(u, v) if self.style == "fillet" else u + v
+        f = ninf / target  # <= 1: the ray's scale that maps the square onto the round
+        w = 1.0 - _smoothstep((ninf / r - 1.0) / self.fade)
+        g = w * (f - 1.0)
+        Y[inside, b] += self.signs[0] * u * g
+        Y[inside, c] += self.signs[1] * v * g
+        return Y
+
+
+@dataclasses.dataclass
+class Ramp(ElementaryMap):
+    """Scale heights above ``base`` along ``height_axis`` by ``1 - drop * ramp(t)``.
+
+    ``t = direction * (x_dir - start) / length`` with a C1 ramp profile, so the top
+    face becomes a planar slope with smooth ends.
+
+    Parameters
+    ----------
+    height_axis, dir_axis : int, distinct
+    base : float, height coordinate that stays fixed
+    start, length : float, the ramp runs over ``[start, start + length]`` on dir_axis
+    direction : float, +1 (lower toward +dir) or -1 (lower toward -dir)
+    drop : float in [0, 1), relative height lost after the ramp
+    blend : float in (0, 0.5), fraction of the ramp used by each smooth end
+    """
+
+    kind: ClassVar[str] = "ramp"
+    height_axis: int
+    dir_axis: int
+    base: float
+    start: float
+    length: float
+    direction: float
+    drop: float
+    blend: float
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        t = (X[:, self.dir_axis] - self.start) / self.length
+        if self.direction < 0:
+            t = 1.0 - t
+        s = _soft_ramp(t, self.blend)
+        Y = X.copy()
+        Y[:, self.height_axis] = self.base + (X[:, self.height_axis] - self.base) * (1.0 - self.drop * s)
+        return Y
+
+
+@dataclasses.dataclass
+class Taper(ElementaryMap):
+    """Scale the two cross-section axes by ``1 + alpha_k * (x_axis - center_axis)``."""
+
+    kind: ClassVar[str] = "taper"
+    axis: int
+    center: np.ndarray
+    alpha: np.ndarray
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        b, c = _other_axes(self.axis)
+        t = X[:, self.axis] - self.center[self.axis]
+        Y = X.copy()
+        Y[:, b] = self.center[b] + (X[:, b] - self.center[b]) * (1.0 + self.alpha[0] * t)
+        Y[:, c] = self.center[c] + (X[:, c] - self.center[c]) * (1.0 + self.alpha[1] * t)
+        return Y
+
+
+@dataclasses.dataclass
+class Shear(ElementaryMap):
+    """``x_axis += amount * (x_by - center_by)``: side faces slant by ``atan(amount)``."""
+
+    kind: ClassVar[str] = "shear"
+    axis: int
+    by: int
+    center: np.ndarray
+    amount: float
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        Y = X.copy()
+        Y[:, self.axis] = X[:, self.axis] + self.amount * (X[:, self.by] - self.center[self.by])
+        return Y
+
+
+@dataclasses.dataclass
+class Twist(ElementaryMap):
+    """Rotate the cross-section about ``axis`` by ``rate * (x_axis - center_axis)`` radians."""
+
+    kind: ClassVar[str] = "twist"
+    axis: int
+    center: np.ndarray
+    rate: float
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        b, c = _other_axes(self.axis)
+        ang = self.rate * (X[:, self.axis] - self.center[self.axis])
+        cs, sn = np.cos(ang), np.sin(ang)
+        u, v = X[:, b] - self.center[b], X[:, c] - self.center[c]
+        Y = X.copy()
+        Y[:, b] = self.center[b] + cs * u - sn * v
+        Y[:, c] = self.center[c] + sn * u + cs * v
+        return Y
+
+
+@dataclasses.dataclass
+class Bend(ElementaryMap):
+    """Barr's bend: the line along ``along`` through ``center`` wraps on a circle of radius
+    ``1 / curvature`` that lies on the ``toward`` side; ``det J = 1 - curvature * n``
+    where ``n = x_toward - center_toward`` (so ``curvature * n < 1`` is required)."""
+
+    kind: ClassVar[str] = "bend"
+    along: int
+    toward: int
+    center: np.ndarray
+    curvature: float
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        k = self.curvature
+        s = X[:, self.along] - self.center[self.along]
+        n = X[:, self.toward] - self.center[self.toward]
+        th = k * s
+        sinc = np.sinc(th / np.pi)  # sin(th) / th
+        half_sinc = np.sinc(th / (2.0 * np.pi))
+        sin_over_k = s * sinc  # sin(th) / k
+        one_minus_cos_over_k = s * np.sin(0.5 * th) * half_sinc  # (1 - cos th) / k
+        Y = X.copy()
+        Y[:, self.along] = self.center[self.along] + sin_over_k - n * np.sin(th)
+        Y[:, self.toward] = self.center[self.toward] + one_minus_cos_over_k + n * np.cos(th)
+        return Y
+
+
+def _bernstein(t: np.ndarray, degree: int) -> np.ndarray:
+    """Bernstein basis ``(N, degree + 1)`` at ``t : (N,)`` clipped to [0, 1]."""
+    from math import comb
+
+    t = np.clip(t, 0.0, 1.0)
+    s = 1.0 - t
+    tp, sp = [np.ones_like(t)], [np.ones_like(t)]
+    for _ in range(degree):  # powers by repeated products (float pow is slow)
+        tp.append(tp[-1] * t)
+        sp.append(sp[-1] * s)
+    return np.stack([comb(degree, k) * tp[k] * sp[degree - k] for k in range(degree + 1)], axis=1)
+
+
+@dataclasses.dataclass
+class FFD(ElementaryMap):
+    """Free-form lattice: ``x + sum_ijk B_i(s) B_j(t) B_k(u) D_ijk`` over the box [lo, hi]."""
+
+    kind: ClassVar[str] = "ffd"
+    lo: np.ndarray
+    hi: np.ndarray
+    displacements: np.ndarray  # (l+1, m+1, n+1, 3)
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        D = np.asarray(self.displacements, dtype=np.float64)
+        T = (X - self.lo) / (self.hi - self.lo)
+        Bx = _bernstein(T[:, 0], D.shape[0] - 1)
+        By = _bernstein(T[:, 1], D.shape[1] - 1)
+        Bz = _bernstein(T[:, 2], D.shape[2] - 1)
+        l, m, n = D.shape[:3]
+        Wxy = (Bx[:, :, None] * By[:, None, :]).reshape(len(X), l * m)
+        T = (Wxy @ D.reshape(l * m, n * 3)).reshape(len(X), n, 3)
+        return X + np.einsum("nk,nkd->nd", Bz, T)
+
+
+@dataclasses.dataclass
+class DeformationMap:
+    """A composition of elementary maps, applied in list order.
+
+    Attributes
+    ----------
+    maps : list of ElementaryMap
+    """
+
+    maps: list[ElementaryMap] = dataclasses.field(default_factory=list)
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        """Map ``X : (N, 3)`` (or ``(3,)``) to the deformed space."""
+        X = np.asarray(X, dtype=np.float64)
+        single = X.ndim == 1
+        Y = X.reshape(-1, 3)
+        for m in self.maps:
+            Y = m(Y)
+        return Y[0] if single else Y
+
+    @property
+    def kinds(self) -> list[str]:
+        return [m.kind for m in self.maps]
+
+    def to_dict(self) -> dict:
+        return {"maps": [m.to_dict() for m in self.maps]}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "DeformationMap":
+        return cls([ElementaryMap.from_dict(m) for m in d["maps"]])
+
+
+def jacobian_determinants(f: Callable[[np.ndarray], np.ndarray], X: np.ndarray, h: float = FD_STEP) -> np.ndarray:
+    """``det J_f`` at ``X : (N, 3)`` by central differences; returns ``(N,)``."""
+    X = np.asarray(X, dtype=np.float64)
+    n = len(X)
+    stacked = np.concatenate([X + h * e for e in np.eye(3)] + [X - h * e for e in np.eye(3)])
+    Y = f(stacked)
+    J = np.stack([(Y[k * n : (k + 1) * n] - Y[(k + 3) * n : (k + 4) * n]) / (2 * h) for k in range(3)], axis=2)
+    return np.linalg.det(J)
+
+
+def check_invertible(
+    f: Callable[[np.ndarray], np.ndarray],
+    lo: np.ndarray,
+    hi: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    n: int = 4096,
+    extra: np.ndarray | None = None,
+    min_det: float = MIN_DET,
+) -> tuple[bool, float]:
+    """Sample ``n`` points uniformly in the box ``[lo, hi]`` (plus ``extra``) and test ``det J > min_det``.
+
+    Parameters
+    ----------
+    f : callable, ``(N, 3) -> (N, 3)``
+    lo, hi : (3,) the bounding box
+    rng : np.random.Generator
+    n : int, random points in the box
+    extra : (K, 3) or None, more points (e.g. the surface vertices)
+    min_det : float
+
+    Returns
+    -------
+    ok : bool
+    min_det : float, the smallest determinant found (NaN counts as failure)
+    """
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    X = lo + (hi - lo) * rng.random((n, 3))
+    if extra is not None:
+        X = np.concatenate([X, np.asarray(extra, dtype=np.float64).reshape(-1, 3)])
+    det = jacobian_determinants(f, X)
+    worst = float(np.min(det)) if np.all(np.isfinite(det)) else float("nan")
+    return bool(np.isfinite(worst) and worst > min_det), worst
+
+
+# --------------------------------------------------------------------------- random maps
+
+
+def random_deformation(
+    rng: np.random.Generator,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    holes: list[tuple[int, np.ndarray, np.ndarray]] = (),
+    edges: list[dict] = (),
+    *,
+    strength: float | None = None,
+) -> DeformationMap:
+    """A random composition: roundings (holes, edges), then ramp / taper / shear / twist / bend / FFD.
+
+    Parameters
+    ----------
+    rng : np.random.Generator
+    lo, hi : (3,) bounding box of the polycube
+    holes : list of ``(axis, lo (3,), hi (3,))`` boxes of holes and pockets that may be
+        rounded into cylinders
+    edges : list of dict, convex edges that may be filleted or chamfered
+        (:func:`~polycubenet.synth.polycube.convex_edges`)
+    strength : float in [0, 1] or None, overall intensity of the global maps
+        (random if None; 0 keeps only roundings)
+
+    Returns
+    -------
+    DeformationMap
+    """
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    ext = hi - lo
+    center = 0.5 * (lo + hi)
+    if strength is None:
+        strength = float(rng.choice([0.0, 0.35, 0.7, 1.0], p=[0.1, 0.3, 0.35, 0.25]))
+    maps: list[ElementaryMap] = []
+
+    # holes -> cylinders
+    round_all = rng.random() < 0.8
+    for axis, hlo, hhi in holes:
+        if not round_all or rng.random() < 0.15:
+            continue
+        b, c = _other_axes(axis)
+        hc = 0.5 * (np.asarray(hlo) + np.asarray(hhi))
+        half = 0.5 * np.array([hhi[b] - hlo[b], hhi[c] - hlo[c]])
+        if np.any(half <= 0):
+            continue
+        # room to the outside of the bounding box, in units of the half sizes
+        room = min((hc[b] - half[0] - lo[b]) / half[0], (hi[b] - hc[b] - half[0]) / half[0],
+                   (hc[c] - half[1] - lo[c]) / half[1], (hi[c] - hc[c] - half[1]) / half[1])
+        fade = float(np.clip(rng.uniform(0.6, 1.0) * room, 0.25, 1.5))
+        maps.append(RoundHole(axis, hc.copy(), half, float(rng.choice([4.0, 8.0, 16.0, 64.0], p=[0.2, 0.35, 0.3, 0.15])),
+                              float(rng.uniform(0.7, 1.0)), fade))
+
+    # convex edges (bounding box, steps, profiles) -> fillets / chamfers
+    p_edge = float(rng.choice([0.0, 0.3, 0.7, 1.0], p=[0.2, 0.3, 0.3, 0.2]))
+    chamfer_p = float(rng.choice([0.0, 0.3, 1.0], p=[0.5, 0.35, 0.15]))
+    r_scale = rng.uniform(0.4, 1.0)
+    for e in edges:
+        if rng.random() >= p_edge:
+            continue
+        fade = 0.5
+        r = float(min(0.9 * e["room"] / (1.0 + fade), r_scale * rng.uniform(0.02, 0.12)))
+        if r < 0.004:
+            continue
+        style = "chamfer" if rng.random() < chamfer_p else "fillet"
+        maps.append(RoundEdge(int(e["axis"]), np.asarray(e["corner"], dtype=np.float64).copy(),
+                              np.asarray(e["signs"], dtype=np.float64).copy(), r, style, fade))
+
+    if strength > 0:
+        s = strength
+        if rng.random() < 0.3 * s + 0.1:  # ramp
+            h_ax = int(rng.integers(3))
+            d_ax = int(rng.choice([a for a in range(3) if a != h_ax]))
+            length = float(rng.uniform(0.3, 0.8) * ext[d_ax])
+            start = float(lo[d_ax] + rng.uniform(0.0, ext[d_ax] - length))
+            blend = float(rng.uniform(0.1, 0.3))
+            angle = np.radians(rng.uniform(10.0, 35.0))
+            drop = float(min(0.6, np.tan(angle) * length * (1 - blend) / max(ext[h_ax], 1e-9)))
+            maps.append(Ramp(h_ax, d_ax, float(lo[h_ax]), start, length, float(rng.choice([-1.0, 1.0])), drop, blend))
+        if rng.random() < 0.35 * s:  # taper
+            axis = int(rng.integers(3))
+            half_len = 0.5 * ext[axis]
+            alpha = rng.uniform(-0.5, 0.5, size=2) / max(half_len, 1e-9) * 0.6 * s
+            maps.append(Taper(axis, center.copy(), alpha))
+        if rng.random() < 0.35 * s:  # shear
+            axis = int(rng.integers(3))
+            by = int(rng.choice([a for a in range(3) if a != axis]))
+            maps.append(Shear(axis, by, center.copy(), float(np.tan(np.radians(rng.uniform(-20, 20) * s)))))
+        if rng.random() < 0.3 * s:  # twist about the longest axis
+            axis = int(np.argmax(ext))
+            total = np.radians(rng.uniform(-30.0, 30.0) * s)
+            maps.append(Twist(axis, center.copy(), float(total / max(ext[axis], 1e-9))))
+        if rng.random() < 0.4 * s:  # bend the longest axis
+            along = int(np.argmax(ext))
+            toward = int(rng.choice([a for a in range(3) if a != along]))
+            total = np.radians(rng.uniform(15.0, 70.0) * s) * rng.choice([-1.0, 1.0])
+            k = total / max(ext[along], 1e-9)
+            k = float(np.clip(k, -0.6 / (0.5 * ext[toward]), 0.6 / (0.5 * ext[toward])))
+            maps.append(Bend(along, toward, center.copy(), k))
+        if rng.random() < 0.3 + 0.4 * s:  # free-form lattice
+            deg = rng.integers(2, 4, size=3)
+            pad = 0.05 * np.max(ext)
+            amp = rng.uniform(0.005, 0.03) * s
+            D = rng.normal(0.0, amp, size=(deg[0] + 1, deg[1] + 1, deg[2] + 1, 3))
+            for a in range(3):  # limit stretch/compression across each axis (thin plates stay intact)
+                mean = D[..., a].mean(axis=a, keepdims=True)
+                lam = min(1.0, 0.15 * ext[a] / (amp * deg[a] + 1e-12))
+                D[..., a] = mean + lam * (D[..., a] - mean)
+            maps.append(FFD(lo - pad, hi + pad, D))
+    return DeformationMap(maps)

@@ -1,0 +1,395 @@
+"""Random polycubes for the synthetic data, built the way a machinist would.
+
+:func:`random_polycube` starts from a stock block (or an extruded L/T/U/I profile, a
+plate, a bar, a frame) on an integer lattice, then cuts or adds features as lattice
+boxes -- through-holes (also crossing each other), blind pockets, slots, notches and
+steps, bosses and arches (handles).  Lattice intervals get random physical widths,
+never thinner than ``min_width`` of the diagonal (a face thinner than about two point
+spacings of the training clouds cannot be told from noise).  Each feature is kept
+only if the solid stays a valid polycube (:func:`polycubenet.polycube.check_occupancy`).
+The general polycube operations (validity, genus, surface, minimal grid) live in
+:mod:`polycubenet.polycube`; they are re-exported here for convenience.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ..polycube import (  # noqa: F401  (re-exported)
+    check_occupancy,
+    compress,
+    convex_edges,
+    edge_contacts,
+    euler_characteristic,
+    nonmanifold_vertices,
+    polycube_quads,
+    polycube_surface,
+    refine_grid,
+    solid_genus,
+    surface_genus,
+    transform_grid,
+    triangulate_quads,
+    validate_occupancy,
+)
+
+
+# --------------------------------------------------------------------------- generator
+
+
+@dataclasses.dataclass
+class Feature:
+    """One generator step, kept for the deformation (rounding holes) and for the record.
+
+    Attributes
+    ----------
+    kind : str, ``through_hole``, ``pocket``, ``slot``, ``notch``, ``step``, ``boss``, ``arch``
+    axis : int, the feature's axis (hole direction, boss normal, ...)
+    lo, hi : (3,) float64, the feature's box in the polycube's (normalized) coordinates
+    """
+
+    kind: str
+    axis: int
+    lo: np.ndarray
+    hi: np.ndarray
+
+    def to_dict(self) -> dict:
+        return {"kind": self.kind, "axis": int(self.axis), "lo": [float(v) for v in self.lo], "hi": [float(v) for v in self.hi]}
+
+
+@dataclasses.dataclass
+class RandomPolycube:
+    """A generated polycube with its provenance.
+
+    Attributes
+    ----------
+    xs, ys, zs : (nx+1,), (ny+1,), (nz+1,) float64, minimal grid (no two adjacent
+        slabs alike), bounding box centred at 0 with diagonal 1
+    occupancy : (nx, ny, nz) bool, valid (:func:`check_occupancy`)
+    genus : int, from :func:`solid_genus`
+    style : str, the stock the part started from
+    features : list of Feature, the features that were kept (holes still open)
+    """
+
+    xs: np.ndarray
+    ys: np.ndarray
+    zs: np.ndarray
+    occupancy: np.ndarray
+    genus: int
+    style: str
+    features: list[Feature]
+
+    @property
+    def grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.xs, self.ys, self.zs
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(lo, hi)`` of the bounding box, each ``(3,)``."""
+        return (np.array([self.xs[0], self.ys[0], self.zs[0]]), np.array([self.xs[-1], self.ys[-1], self.zs[-1]]))
+
+
+_STYLES = ("block", "plate", "bar", "extrusion", "frame")
+_STYLE_P = (0.30, 0.25, 0.12, 0.18, 0.15)
+_MARGIN = 2  # empty lattice layers around the stock, room for bosses and arches
+
+
+class _Builder:
+    """Lattice occupancy with transactional feature edits (kept only when valid)."""
+
+    def __init__(self, rng: np.random.Generator, dims: np.ndarray):
+        self.rng = rng
+        self.n = np.asarray(dims, dtype=np.int64)
+        self.M = _MARGIN
+        self.occ = np.zeros(tuple(self.n + 2 * self.M), dtype=bool)
+        self.stock_lo = np.full(3, self.M)
+        self.stock_hi = self.M + self.n
+        self.occ[tuple(slice(l, h) for l, h in zip(self.stock_lo, self.stock_hi))] = True
+        self.features: list[tuple[str, int, np.ndarray, np.ndarray]] = []
+
+    def box(self, lo, hi) -> tuple[slice, slice, slice]:
+        return tuple(slice(int(l), int(h)) for l, h in zip(lo, hi))
+
+    def try_edit(self, kind: str, axis: int, lo, hi, value: bool, require_change: bool = True) -> bool:
+        lo, hi = np.asarray(lo, dtype=np.int64), np.asarray(hi, dtype=np.int64)
+        if np.any(lo < 0) or np.any(hi > self.occ.shape) or np.any(hi <= lo):
+            return False
+        sl = self.box(lo, hi)
+        old = self.occ[sl].copy()
+        if require_change and np.all(old == value):
+            return False
+        self.occ[sl] = value
+        if check_occupancy(self.occ) is not None:
+            self.occ[sl] = old
+            return False
+        self.features.append((kind, axis, lo, hi))
+        return True
+
+    # ----------------------------------------------------------- proposals
+    def _rect(self, axis: int, max_frac: float = 0.45, wall: int = 1):
+        """A rectangle in the two axes other than ``axis``, inside the stock with ``wall`` cells left."""
+        lo, hi = self.stock_lo.copy(), self.stock_hi.copy()
+        for a in range(3):
+            if a == axis:
+                continue
+            span = self.n[a] - 2 * wall
+            if span < 1:
+                return None
+            size = int(self.rng.integers(1, max(1, int(span * max_frac)) + 1))
+            start = int(self.rng.integers(0, span - size + 1))
+            lo[a] = self.stock_lo[a] + wall + start
+            hi[a] = lo[a] + size
+        return lo, hi
+
+    def through_hole(self, axis: int) -> bool:
+        r = self._rect(axis)
+        if r is None:
+            return False
+        lo, hi = r
+        lo[axis], hi[axis] = 0, self.occ.shape[axis]
+        return self.try_edit("through_hole", axis, lo, hi, False)
+
+    def pocket(self, axis: int) -> bool:
+        r = self._rect(axis)
+        if r is None or self.n[axis] < 2:
+            return False
+        lo, hi = r
+        depth = int(self.rng.integers(1, self.n[axis]))
+        if self.rng.random() < 0.5:
+            lo[axis], hi[axis] = self.stock_hi[axis] - depth, self.occ.shape[axis]
+        else:
+            lo[axis], hi[axis] = 0, self.stock_lo[axis] + depth
+        return self.try_edit("pocket", axis, lo, hi, False)
+
+    def slot(self, axis: int) -> bool:
+        """A channel through ``axis``, open on one side of a second axis."""
+        others = [a for a in range(3) if a != axis]
+        side_axis, width_axis = (others if self.rng.random() < 0.5 else others[::-1])
+        if self.n[width_axis] < 3 or self.n[side_axis] < 2:
+            return False
+        lo, hi = np.zeros(3, dtype=np.int64), np.array(self.occ.shape, dtype=np.int64)
+        w = int(self.rng.integers(1, max(1, self.n[width_axis] // 3) + 1))
+        s = int(self.rng.integers(1, self.n[width_axis] - w))
+        lo[width_axis] = self.stock_lo[width_axis] + s
+        hi[width_axis] = lo[width_axis] + w
+        depth = int(self.rng.integers(1, self.n[side_axis]))
+        if self.rng.random() < 0.5:
+            lo[side_axis] = self.stock_hi[side_axis] - depth
+        else:
+            hi[side_axis] = self.stock_lo[side_axis] + depth
+        return self.try_edit("slot", axis, lo, hi, False)
+
+    def notch(self, axis: int, through: bool) -> bool:
+        """Remove a corner box (``through``: along the whole ``axis``, a step; else a corner cut)."""
+        lo, hi = np.zeros(3, dtype=np.int64), np.array(self.occ.shape, dtype=np.int64)
+        axes = [a for a in range(3) if a != axis] + ([] if through else [axis])
+        for a in axes:
+            if self.n[a] < 2:
+                return False
+            d = int(self.rng.integers(1, max(1, (self.n[a] * 2) // 3) + 1))
+            if self.rng.random() < 0.5:
+                lo[a] = self.stock_hi[a] - d
+            else:
+                hi[a] = self.stock_lo[a] + d
+        return self.try_edit("step" if through else "notch", axis, lo, hi, False)
+
+    def boss(self, axis: int) -> bool:
+        r = self._rect(axis, max_frac=0.6, wall=0)
+        if r is None:
+            return False
+        lo, hi = r
+        height = int(self.rng.integers(1, self.M + 1))
+        if self.rng.random() < 0.5:
+            lo[axis], hi[axis] = self.stock_hi[axis], self.stock_hi[axis] + height
+        else:
+            lo[axis], hi[axis] = self.stock_lo[axis] - height, self.stock_lo[axis]
+        return self.try_edit("boss", axis, lo, hi, True)
+
+    def arch(self, axis: int) -> bool:
+        """A handle on a face: two posts one layer high and a beam over them (genus + 1)."""
+        others = [a for a in range(3) if a != axis]
+        along, across = (others if self.rng.random() < 0.5 else others[::-1])
+        if self.n[along] < 3:
+            return False
+        top = self.rng.random() < 0.5
+        lvl0 = self.stock_hi[axis] if top else self.stock_lo[axis] - 1
+        lvl1 = lvl0 + 1 if top else lvl0 - 1
+        a0 = int(self.rng.integers(0, self.n[along] - 2))
+        a1 = int(self.rng.integers(a0 + 2, self.n[along]))
+        w = int(self.rng.integers(1, max(1, self.n[across] // 3) + 1))
+        c0 = int(self.rng.integers(0, self.n[across] - w + 1))
+        saved = self.occ.copy()
+        for pos in (a0, a1):
+            self.occ[self._cell_box(axis, along, across, lvl0, pos, pos + 1, c0, c0 + w)] = True
+        self.occ[self._cell_box(axis, along, across, lvl1, a0, a1 + 1, c0, c0 + w)] = True
+        if check_occupancy(self.occ) is not None:
+            self.occ = saved
+            return False
+        lo = np.zeros(3, dtype=np.int64)
+        hi = np.zeros(3, dtype=np.int64)
+        lo[axis], hi[axis] = min(lvl0, lvl1), max(lvl0, lvl1) + 1
+        lo[along], hi[along] = self.stock_lo[along] + a0, self.stock_lo[along] + a1 + 1
+        lo[across], hi[across] = self.stock_lo[across] + c0, self.stock_lo[across] + c0 + w
+        self.features.append(("arch", axis, lo, hi))
+        return True
+
+    def _cell_box(self, axis, along, across, lvl, a0, a1, c0, c1):
+        sl = [slice(None)] * 3
+        sl[axis] = slice(lvl, lvl + 1)
+        sl[along] = slice(self.stock_lo[along] + a0, self.stock_lo[along] + a1)
+        sl[across] = slice(self.stock_lo[across] + c0, self.stock_lo[across] + c1)
+        return tuple(sl)
+
+
+def _widths(rng: np.random.Generator, n: int, thin_p: float) -> np.ndarray:
+    w = rng.uniform(0.5, 1.6, size=n)
+    thin = rng.random(n) < thin_p
+    w[thin] = rng.uniform(0.15, 0.35, size=int(thin.sum()))
+    return w
+
+
+#: thinnest grid interval, relative to the bounding-box diagonal (see the module docstring)
+MIN_WIDTH = 0.025
+
+
+def _enforce_min_width(coords: list[np.ndarray], min_width: float) -> list[np.ndarray]:
+    """Widen intervals thinner than ``min_width`` times the (growing) diagonal until none is."""
+    for _ in range(20):
+        diag = float(np.linalg.norm([c[-1] - c[0] for c in coords]))
+        floor = min_width * diag
+        widths = [np.diff(c) for c in coords]
+        if all(w.min() >= floor * (1 - 1e-9) for w in widths):
+            break
+        coords = [np.concatenate([[c[0]], c[0] + np.cumsum(np.maximum(w, floor * 1.001))]) for c, w in zip(coords, widths)]
+    return coords
+
+
+def random_polycube(
+    rng: np.random.Generator,
+    *,
+    style: str | None = None,
+    n_holes: int | None = None,
+    max_tries: int = 50,
+    min_width: float = MIN_WIDTH,
+) -> RandomPolycube:
+    """A random valid polycube, machined-part style.
+
+    Parameters
+    ----------
+    rng : np.random.Generator, the only source of randomness
+    style : str or None, one of ``block, plate, bar, extrusion, frame`` (random if None)
+    n_holes : int or None, number of through-holes to *attempt* (random if None);
+        the genus is measured afterwards, not assumed
+    max_tries : int, whole-part retries if the stock ends up degenerate
+    min_width : float, thinnest interval relative to the bounding-box diagonal
+
+    Returns
+    -------
+    RandomPolycube, normalized (bounding box centred at 0, diagonal 1)
+    """
+    for _ in range(max_tries):
+        pc = _random_polycube_once(rng, style, n_holes, min_width)
+        if pc is not None:
+            return pc
+    raise RuntimeError("random_polycube: no valid polycube")  # pragma: no cover - never seen
+
+
+def _random_polycube_once(
+    rng: np.random.Generator, style: str | None, n_holes: int | None, min_width: float
+) -> RandomPolycube | None:
+    if style is None:
+        style = str(rng.choice(_STYLES, p=_STYLE_P))
+    if style not in _STYLES:
+        raise ValueError(f"unknown style {style!r}; expected one of {_STYLES}")
+    if style == "block":
+        dims = rng.integers(4, 11, size=3)
+        hole_p = (0.30, 0.25, 0.18, 0.12, 0.08, 0.07)
+    elif style == "plate":
+        dims = np.array([rng.integers(7, 15), rng.integers(6, 13), rng.integers(1, 4)])
+        hole_p = (0.06, 0.10, 0.12, 0.12, 0.12, 0.12, 0.12, 0.12, 0.12)
+    elif style == "bar":
+        dims = np.array([rng.integers(10, 17), rng.integers(3, 6), rng.integers(3, 6)])
+        hole_p = (0.25, 0.25, 0.2, 0.15, 0.15)
+    elif style == "extrusion":
+        dims = np.array([rng.integers(6, 12), rng.integers(6, 12), rng.integers(3, 10)])
+        hole_p = (0.35, 0.3, 0.2, 0.15)
+    else:  # frame
+        dims = rng.integers(5, 10, size=3)
+        hole_p = (0.0, 0.0, 0.1, 0.2, 0.25, 0.25, 0.2)
+    dims = dims[rng.permutation(3)]
+    b = _Builder(rng, dims)
+
+    if style == "extrusion":  # L / T / U / I profile: remove 1-3 boxes through the extrusion axis
+        ax = int(np.argmin(dims)) if rng.random() < 0.5 else int(rng.integers(3))
+        for _ in range(int(rng.integers(1, 4))):
+            for _try in range(4):
+                if rng.random() < 0.5:
+                    ok = b.notch(ax, through=True)
+                else:
+                    ok = b.slot(ax)
+                if ok:
+                    break
+
+    if n_holes is None:
+        n_holes = int(rng.choice(len(hole_p), p=np.asarray(hole_p) / np.sum(hole_p)))
+    thin_axis = int(np.argmin(dims))
+    for _ in range(n_holes):
+        for _try in range(6):
+            if style == "plate":
+                axis = thin_axis if rng.random() < 0.85 else int(rng.integers(3))
+            else:
+                axis = int(rng.integers(3))
+            if b.through_hole(axis):
+                break
+
+    n_other = int(rng.integers(0, 5))
+    kinds = ("pocket", "slot", "notch", "step", "boss", "arch")
+    kind_p = np.array([0.22, 0.15, 0.15, 0.18, 0.2, 0.1])
+    for _ in range(n_other):
+        kind = str(rng.choice(kinds, p=kind_p))
+        axis = int(rng.integers(3))
+        for _try in range(4):
+            ok = {
+                "pocket": lambda: b.pocket(axis),
+                "slot": lambda: b.slot(axis),
+                "notch": lambda: b.notch(axis, through=False),
+                "step": lambda: b.notch(axis, through=True),
+                "boss": lambda: b.boss(axis),
+                "arch": lambda: b.arch(axis),
+            }[kind]()
+            if ok:
+                break
+
+    occ = b.occ
+    if check_occupancy(occ) is not None:  # pragma: no cover - every edit is validated
+        return None
+    thin_p = 0.15 if style != "plate" else 0.05
+    coords = [np.concatenate([[0.0], np.cumsum(_widths(rng, s, thin_p))]) for s in occ.shape]
+    # bosses and arches sit in the margin layers: make them a bit lower than stock layers
+    for a in range(3):
+        w = np.diff(coords[a])
+        w[: _MARGIN] *= 0.6
+        w[-_MARGIN:] *= 0.6
+        coords[a] = np.concatenate([[0.0], np.cumsum(w)])
+    coords = _enforce_min_width(coords, min_width)
+    (cx, cy, cz), cocc = compress(coords, occ)
+    lo = np.array([cx[0], cy[0], cz[0]])
+    hi = np.array([cx[-1], cy[-1], cz[-1]])
+    center, diag = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
+    if diag <= 0:  # pragma: no cover
+        return None
+    norm = [(c - center[a]) / diag for a, c in enumerate((cx, cy, cz))]
+    features = []
+    for kind, axis, flo, fhi in b.features:
+        # features still present: holes/pockets/slots must still be empty, bosses/arches still there
+        sl = b.box(flo, fhi)
+        if kind in ("boss", "arch"):
+            if kind == "boss" and not occ[sl].all():
+                continue
+        elif occ[sl].any():
+            continue
+        flo_c = np.array([(coords[a][flo[a]] - center[a]) / diag for a in range(3)])
+        fhi_c = np.array([(coords[a][fhi[a]] - center[a]) / diag for a in range(3)])
+        features.append(Feature(kind, int(axis), flo_c, fhi_c))
+    return RandomPolycube(norm[0], norm[1], norm[2], cocc, solid_genus(cocc), style, features)

@@ -1,0 +1,318 @@
+"""Synthetic pairs: topology, validity, invertibility, correspondence, reproducibility."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from polycubenet.frame import canonicalize, face_normals_areas
+from polycubenet.sampling import interpolate
+from polycubenet.synth import (
+    DeformationMap,
+    check_invertible,
+    check_occupancy,
+    jacobian_determinants,
+    load_shard,
+    make_pair,
+    pair_seed,
+    polycube_surface,
+    random_deformation,
+    random_polycube,
+    solid_genus,
+    surface_genus,
+    transform_grid,
+    write_dataset,
+)
+from polycubenet.synth.__main__ import main as synth_main
+from polycubenet.synth.deform import FFD, Bend, RoundEdge, RoundHole
+from polycubenet.synth.pairs import snap_rotation
+from polycubenet.synth.polycube import convex_edges
+
+
+def _unit_grid(occ):
+    return [np.arange(n + 1, dtype=float) for n in occ.shape]
+
+
+# --------------------------------------------------------------------------- topology
+
+
+def test_genus_two_independent_computations_agree_over_many_seeds():
+    genera = []
+    for s in range(160):
+        pc = random_polycube(np.random.default_rng(s))
+        assert check_occupancy(pc.occupancy) is None
+        _, F = polycube_surface(pc.xs, pc.ys, pc.zs, pc.occupancy)
+        g_euler = surface_genus(F)  # V - E + F of the triangulated boundary
+        assert g_euler == pc.genus == solid_genus(pc.occupancy), s  # cubical complex of the solid
+        genera.append(g_euler)
+    assert set(range(5)) <= set(genera), sorted(set(genera))
+    assert max(genera) >= 6
+
+
+@pytest.mark.parametrize("k", [0, 1, 2, 3, 4])
+def test_genus_by_construction_plate_with_k_holes(k):
+    occ = np.ones((2 * k + 1, 3, 1), dtype=bool)
+    occ[1 : 2 * k : 2, 1, 0] = False  # k separated square holes through a plate
+    assert solid_genus(occ) == k
+    V, F = polycube_surface(*_unit_grid(occ), occ, h=0.4)
+    assert surface_genus(F) == k
+
+
+def test_genus_cube_frame_is_five():
+    occ = np.ones((3, 3, 3), dtype=bool)
+    for axis in range(3):  # the centre column along each axis: a cube frame of 12 bars
+        sl = [1, 1, 1]
+        sl[axis] = slice(None)
+        occ[tuple(sl)] = False
+    assert check_occupancy(occ) is None
+    assert solid_genus(occ) == 5
+    assert surface_genus(polycube_surface(*_unit_grid(occ), occ)[1]) == 5
+
+
+def test_surface_is_closed_oriented_and_axis_aligned():
+    pc = random_polycube(np.random.default_rng(7), style="frame")
+    V, F = polycube_surface(pc.xs, pc.ys, pc.zs, pc.occupancy, h=0.03)
+    normals, areas = face_normals_areas(V, F)
+    assert np.all(areas > 0)
+    big = np.abs(normals).max(axis=1)
+    np.testing.assert_allclose(big, 1.0, atol=1e-9)
+    assert np.all(np.sort(np.abs(normals), axis=1)[:, :2] <= 1e-9)
+    volume = np.einsum("ij,ij->i", V[F[:, 0]], np.cross(V[F[:, 1]], V[F[:, 2]])).sum() / 6.0
+    cell_volume = np.einsum("i,j,k->ijk", np.diff(pc.xs), np.diff(pc.ys), np.diff(pc.zs))[pc.occupancy].sum()
+    assert volume == pytest.approx(cell_volume, rel=1e-9)  # outward and closed
+
+
+# --------------------------------------------------------------------------- validity
+
+
+def test_edge_contact_is_rejected():
+    occ = np.zeros((2, 2, 1), dtype=bool)
+    occ[0, 0, 0] = occ[1, 1, 0] = True
+    reason = check_occupancy(occ)
+    assert reason is not None and "edge" in reason
+
+
+def test_vertex_contact_is_rejected():
+    occ = np.zeros((2, 2, 2), dtype=bool)
+    occ[0, 0, 0] = occ[1, 1, 1] = True
+    reason = check_occupancy(occ)
+    assert reason is not None and "vertex" in reason
+    # the same pinch inside a larger solid (two blocks joined at one corner)
+    big = np.zeros((4, 4, 4), dtype=bool)
+    big[:2, :2, :2] = True
+    big[2:, 2:, 2:] = True
+    assert "vertex" in check_occupancy(big)
+
+
+def test_empty_cells_in_edge_contact_are_rejected():
+    occ = np.ones((2, 2, 3), dtype=bool)
+    occ[0, 0, 1] = occ[1, 1, 1] = False  # two notches meeting along an edge
+    reason = check_occupancy(occ)
+    assert reason is not None and "edge" in reason
+
+
+def test_cavity_and_disconnected_are_rejected_and_valid_passes():
+    occ = np.ones((3, 3, 3), dtype=bool)
+    assert check_occupancy(occ) is None
+    occ[1, 1, 1] = False
+    assert "cavity" in check_occupancy(occ)
+    two = np.zeros((3, 1, 1), dtype=bool)
+    two[0] = two[2] = True
+    assert "disconnected" in check_occupancy(two)
+    ell = np.zeros((2, 2, 1), dtype=bool)
+    ell[0, 0, 0] = ell[1, 0, 0] = ell[0, 1, 0] = True
+    assert check_occupancy(ell) is None
+
+
+# --------------------------------------------------------------------------- deformations
+
+
+def test_random_deformations_are_invertible_and_serialisable():
+    for s in range(12):
+        rng = np.random.default_rng(100 + s)
+        pc = random_polycube(rng)
+        lo, hi = pc.bounds
+        holes = [(f.axis, f.lo, f.hi) for f in pc.features if f.kind in ("through_hole", "pocket")]
+        edges = convex_edges(pc.xs, pc.ys, pc.zs, pc.occupancy)
+        d = random_deformation(rng, lo, hi, holes, edges, strength=1.0)
+        ok, worst = check_invertible(d, lo, hi, np.random.default_rng(s), n=2048)
+        assert ok and worst > 0, (s, worst, d.kinds)
+        X = lo + (hi - lo) * np.random.default_rng(s).random((50, 3))
+        assert np.array_equal(DeformationMap.from_dict(d.to_dict())(X), d(X))
+
+
+def test_bend_jacobian_matches_closed_form():
+    bend = Bend(along=0, toward=2, center=np.zeros(3), curvature=0.8)
+    X = np.random.default_rng(0).uniform(-0.5, 0.5, (200, 3))
+    np.testing.assert_allclose(jacobian_determinants(bend, X), 1.0 - 0.8 * X[:, 2], atol=1e-6)
+
+
+def test_rounding_maps_are_invertible_and_round():
+    hole = RoundHole(axis=2, center=np.zeros(3), half=np.array([0.1, 0.1]), p=64.0, strength=1.0, fade=1.0)
+    edge = RoundEdge(axis=2, corner=np.array([0.5, 0.5]), signs=np.array([1.0, 1.0]), radius=0.1, style="fillet", fade=0.5)
+    lo, hi = -0.5 * np.ones(3), 0.5 * np.ones(3)
+    for m in (hole, edge, DeformationMap([hole, edge])):
+        ok, worst = check_invertible(m, lo, hi, np.random.default_rng(1), n=8192)
+        assert ok, worst
+    # the square hole's wall becomes (nearly) a circle of radius ~0.1
+    t = np.linspace(-0.1, 0.1, 41)
+    wall = np.concatenate([np.column_stack([t, np.full_like(t, 0.1), np.zeros_like(t)]),
+                           np.column_stack([np.full_like(t, 0.1), t, np.zeros_like(t)])])
+    r = np.linalg.norm(hole(wall)[:, :2], axis=1)
+    assert r.max() - r.min() < 0.002
+    # the fillet maps the bounding-box corner onto a circle of radius 0.1 about (0.4, 0.4)
+    corner_faces = np.column_stack([np.full_like(t, 0.5), 0.4 + np.abs(t), np.zeros_like(t)])
+    r = np.linalg.norm(edge(corner_faces)[:, :2] - 0.4, axis=1)
+    np.testing.assert_allclose(r, 0.1, atol=1e-12)
+
+
+def test_non_invertible_maps_are_caught():
+    lo, hi = -0.5 * np.ones(3), 0.5 * np.ones(3)
+    rng = np.random.default_rng(0)
+    folded_bend = Bend(along=0, toward=2, center=np.zeros(3), curvature=4.0)  # det = 1 - 4 z < 0 for z > 1/4
+    ok, worst = check_invertible(folded_bend, lo, hi, rng)
+    assert not ok and worst < 0
+    D = np.zeros((2, 2, 2, 3))
+    D[1, :, :, 0] = -2.0  # the +x side of the lattice pushed far past the -x side: a fold
+    ok, worst = check_invertible(FFD(lo, hi, D), lo, hi, rng)
+    assert not ok and worst < 0
+    ok, _ = check_invertible(DeformationMap([]), lo, hi, rng)  # identity passes
+    assert ok
+
+
+# --------------------------------------------------------------------------- pairs
+
+
+@pytest.fixture(scope="module")
+def pair():
+    return make_pair(pair_seed(0, 5), n_cond=512, n_target=512)
+
+
+def test_pair_vertices_correspond_through_the_map(pair):
+    np.testing.assert_allclose(pair.polycube_to_shape(pair.polycube_vertices), pair.shape_vertices, atol=1e-9)
+    assert pair.shape_vertices.shape == pair.polycube_vertices.shape
+    assert surface_genus(pair.faces) == pair.genus
+
+
+def test_pair_samples_correspond_exactly(pair):
+    c, t = pair.cond, pair.target
+    assert c.points.shape == (512, 3) and t.points.shape == (512, 3)
+    np.testing.assert_array_equal(c.face_ids, t.face_ids)
+    np.testing.assert_array_equal(c.barycentrics, t.barycentrics)
+    np.testing.assert_allclose(interpolate(pair.shape_vertices, pair.faces, c.face_ids, c.barycentrics), c.points, atol=1e-12)
+    np.testing.assert_allclose(interpolate(pair.polycube_vertices, pair.faces, t.face_ids, t.barycentrics), t.points, atol=1e-12)
+    np.testing.assert_allclose(pair.cond_on_polycube, t.points, atol=1e-12)
+    np.testing.assert_allclose(pair.target_on_shape, c.points, atol=1e-12)
+    # mapping the target points' triangle corners through the deformation gives the shape triangles
+    tri = pair.polycube_vertices[pair.faces[t.face_ids]].reshape(-1, 3)
+    mapped = pair.polycube_to_shape(tri).reshape(-1, 3, 3)
+    np.testing.assert_allclose(np.einsum("kj,kjd->kd", t.barycentrics, mapped), c.points, atol=1e-9)
+
+
+def test_pair_with_different_point_counts():
+    p = make_pair(11, n_cond=300, n_target=200, sampler="uniform")
+    assert p.cond.points.shape == (300, 3) and p.target.points.shape == (200, 3)
+    np.testing.assert_allclose(interpolate(p.shape_vertices, p.faces, p.target.face_ids, p.target.barycentrics),
+                               p.target_on_shape, atol=1e-12)
+    np.testing.assert_allclose(interpolate(p.polycube_vertices, p.faces, p.cond.face_ids, p.cond.barycentrics),
+                               p.cond_on_polycube, atol=1e-12)
+
+
+def test_pair_is_in_the_canonical_frame_and_polycube_axis_aligned(pair):
+    V = pair.shape_vertices
+    lo, hi = V.min(0), V.max(0)
+    np.testing.assert_allclose(0.5 * (lo + hi), 0.0, atol=1e-12)
+    assert np.linalg.norm(hi - lo) == pytest.approx(1.0, abs=1e-12)
+    _, T = canonicalize(V, pair.faces)  # the shape is already canonical: canonicalize is ~identity
+    np.testing.assert_allclose(T.forward(V), V, atol=1e-6)
+    P = pair.polycube_transform.rotation
+    assert np.all(np.isin(P, (-1.0, 0.0, 1.0))) and np.linalg.det(P) == pytest.approx(1.0)
+    assert snap_rotation(pair.shape_transform.rotation)[0].tolist() == P.tolist()
+    for normals in (face_normals_areas(pair.polycube_vertices, pair.faces)[0], pair.target.normals):
+        np.testing.assert_allclose(np.abs(normals).max(axis=1), 1.0, atol=1e-9)
+        assert np.all(np.sort(np.abs(normals), axis=1)[:, :2] <= 1e-9)
+    # the stored grid is the transformed polycube: same surface (coarse vertices among the
+    # refined ones, same area)
+    pc = pair.polycube
+    Vg, Fg = polycube_surface(pc.xs, pc.ys, pc.zs, pc.occupancy)
+    fine = {tuple(v) for v in np.round(pair.polycube_vertices, 12)}
+    assert all(tuple(v) in fine for v in np.round(Vg, 12))
+    area_g = face_normals_areas(Vg, Fg)[1].sum()
+    area_f = face_normals_areas(pair.polycube_vertices, pair.faces)[1].sum()
+    assert area_g == pytest.approx(area_f, rel=1e-9)
+    assert solid_genus(pc.occupancy) == pair.genus == pc.meta["genus"]
+
+
+def test_transform_grid_matches_transformed_surface():
+    pc = random_polycube(np.random.default_rng(3))
+    V, F = polycube_surface(pc.xs, pc.ys, pc.zs, pc.occupancy)
+    P = np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    c, s = np.array([0.1, -0.2, 0.05]), 1.7
+    xs, ys, zs, occ = transform_grid(pc.xs, pc.ys, pc.zs, pc.occupancy, c, s, P)
+    V2, F2 = polycube_surface(xs, ys, zs, occ)
+    mapped = ((V - c) * s) @ P.T
+    key = lambda A: np.array(sorted(map(tuple, np.round(A, 12))))  # noqa: E731
+    np.testing.assert_array_equal(key(V2), key(mapped))
+    assert face_normals_areas(V2, F2)[1].sum() == pytest.approx(face_normals_areas(mapped, F)[1].sum(), rel=1e-12)
+
+
+def test_pair_save_load_roundtrip(pair, tmp_path):
+    from polycubenet.synth import SynthPair
+
+    path = pair.save(tmp_path / "pair.npz")
+    back = SynthPair.load(path)
+    np.testing.assert_array_equal(back.shape_vertices, pair.shape_vertices)
+    np.testing.assert_array_equal(back.polycube.occupancy, pair.polycube.occupancy)
+    np.testing.assert_allclose(back.polycube_to_shape(back.polycube_vertices[:100]), pair.shape_vertices[:100], atol=1e-9)
+
+
+# --------------------------------------------------------------------------- shards
+
+
+def _sha(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def test_shards_are_byte_for_byte_reproducible(tmp_path):
+    kw = dict(per_shard=2, n_cond=64, n_target=48, progress=False)
+    a = write_dataset(tmp_path / "a", 3, seed=9, **kw)
+    b = write_dataset(tmp_path / "b", 3, seed=9, workers=2, **kw)
+    c = write_dataset(tmp_path / "c", 3, seed=10, **kw)
+    assert len(a) == 2
+    assert [_sha(p) for p in a] == [_sha(p) for p in b]
+    assert _sha(tmp_path / "a" / "dataset.json") == _sha(tmp_path / "b" / "dataset.json")
+    assert _sha(a[0]) != _sha(c[0])
+
+
+def test_shard_contents_and_loader(tmp_path):
+    rc = synth_main(["--out", str(tmp_path), "--count", "3", "--seed", "4", "--per-shard", "3",
+                     "--n-cond", "40", "--n-target", "40", "--full", "--no-progress"])
+    assert rc == 0
+    shard = load_shard(tmp_path / "shard-00000.npz")
+    assert len(shard) == 3
+    assert shard["cond_points"].shape == (3, 40, 3) and shard["target_normals"].shape == (3, 40, 3)
+    assert shard["cond_points"].dtype == np.float32
+    np.testing.assert_array_equal(shard["index"], [0, 1, 2])
+    np.testing.assert_array_equal(shard["seeds"], [pair_seed(4, i) for i in range(3)])
+    for k, rec in enumerate(shard):
+        again = shard.regenerate(k)
+        pc = rec["polycube"]
+        np.testing.assert_array_equal(pc.occupancy, again.polycube.occupancy)
+        np.testing.assert_array_equal(pc.xs, again.polycube.xs)
+        assert rec["genus"] == again.genus == solid_genus(pc.occupancy)
+        np.testing.assert_allclose(rec["cond_points"], again.cond.points, atol=1e-6)
+        Vs, Vp, F = shard.mesh(k)
+        np.testing.assert_array_equal(F, again.faces)
+        pts = interpolate(Vp, F, rec["target_face_ids"], rec["target_barycentrics"].astype(np.float64))
+        np.testing.assert_allclose(pts, rec["target_points"], atol=1e-6)
+        assert rec["meta"]["deformation"] == again.deformation.to_dict()
+    # a second run resumes: nothing changes
+    before = _sha(tmp_path / "shard-00000.npz")
+    assert synth_main(["--out", str(tmp_path), "--count", "3", "--seed", "4", "--per-shard", "3",
+                       "--n-cond", "40", "--n-target", "40", "--full", "--no-progress"]) == 0
+    assert _sha(tmp_path / "shard-00000.npz") == before
+    # other parameters in the same folder are refused
+    assert synth_main(["--out", str(tmp_path), "--count", "3", "--seed", "5", "--no-progress"]) == 2
