@@ -13,11 +13,15 @@ boundary_vertex_mask
     Which points lie on those faces.
 hex_volumes
     Exact (signed) volume of each trilinear hex.
+partition
+    Regular partition of a polycube (grid + occupancy) into conforming hexes.
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+from .data import HexMesh
 
 #: The six faces of a VTK hexahedron, each listed so that its normal points out
 #: of a positively oriented hex (same faces and orientation as ``vtkHexahedron``).
@@ -222,3 +226,75 @@ __all__ = [
     "quads_to_triangles",
     "enclosed_volume",
 ]
+
+
+# --------------------------------------------------------------------------- partition
+
+
+def element_size(poly, *, target_size: float | None = None, target_hexes: int | None = None) -> float:
+    """Edge length for :func:`partition`: ``target_size`` as given, or the cube root of the
+    polycube volume over ``target_hexes``; default 4% of the polycube's bounding-box diagonal."""
+    if target_size is not None and target_hexes is not None:
+        raise ValueError("give target_size or target_hexes, not both")
+    xs, ys, zs = poly.xs, poly.ys, poly.zs
+    if target_hexes is not None:
+        if target_hexes < 1:
+            raise ValueError(f"target_hexes must be >= 1; got {target_hexes}")
+        cell = np.multiply.outer(np.multiply.outer(np.diff(xs), np.diff(ys)), np.diff(zs))
+        volume = float(cell[np.asarray(poly.occupancy, bool)].sum())
+        return (volume / target_hexes) ** (1.0 / 3.0)
+    if target_size is None:
+        target_size = 0.04 * float(np.linalg.norm([xs[-1] - xs[0], ys[-1] - ys[0], zs[-1] - zs[0]]))
+    if not target_size > 0:
+        raise ValueError(f"target_size must be positive; got {target_size}")
+    return float(target_size)
+
+
+def partition(poly, *, target_size: float | None = None, target_hexes: int | None = None) -> HexMesh:
+    """Regular partition of a polycube into conforming hexes, in the polycube domain.
+
+    Every grid interval of length ``L`` is split into ``max(1, round(L / h))`` equal pieces
+    (``h`` from :func:`element_size`); each fine cell inside an occupied polycube cell
+    becomes one hex.  Nodes are shared, so the mesh is conforming.
+
+    Parameters
+    ----------
+    poly : polycubenet.data.Polycube
+    target_size : float or None, element edge length (same units as the grid)
+    target_hexes : int or None, approximate hex count instead of a size
+
+    Returns
+    -------
+    HexMesh
+        ``points (P, 3)`` polycube-domain positions, ``hexes (H, 8)`` in VTK order with
+        positive volume, ``boundary (P,)``; ``meta`` has ``h``, the fine grid sizes and
+        ``pieces`` (fine intervals per coarse interval, per axis).
+    """
+    h = element_size(poly, target_size=target_size, target_hexes=target_hexes)
+    occ = np.asarray(poly.occupancy, dtype=bool)
+    fine, counts = [], []
+    for g in (poly.xs, poly.ys, poly.zs):
+        g = np.asarray(g, dtype=np.float64)
+        n = np.maximum(1, np.rint(np.diff(g) / h)).astype(np.int64)
+        t = [np.linspace(g[i], g[i + 1], n[i] + 1)[:-1] for i in range(len(n))]
+        fine.append(np.concatenate(t + [g[-1:]]))
+        counts.append(n)
+    # occupancy of the fine cells: repeat each coarse cell along each axis by its piece count
+    focc = occ
+    for a in range(3):
+        focc = np.repeat(focc, counts[a], axis=a)
+    cells = np.argwhere(focc)  # (H, 3) fine-cell indices
+    corner = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]])
+    node_ijk = cells[:, None, :] + corner[None]  # (H, 8, 3)
+    shape = np.array([len(f) for f in fine])
+    flat = np.ravel_multi_index(node_ijk.reshape(-1, 3).T, shape)
+    used, inverse = np.unique(flat, return_inverse=True)
+    hexes = inverse.reshape(-1, 8).astype(np.int64)
+    ijk = np.stack(np.unravel_index(used, shape), axis=1)
+    points = np.stack([fine[a][ijk[:, a]] for a in range(3)], axis=1)
+    return HexMesh(
+        points=points,
+        hexes=hexes,
+        boundary=boundary_vertex_mask(hexes, len(points)),
+        meta={"h": float(h), "fine_shape": shape.tolist(), "pieces": [c.tolist() for c in counts]},
+    )

@@ -1,0 +1,112 @@
+"""Polycube structure extraction and regular partition on small known cases."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from polycubenet.data import Polycube
+from polycubenet.errors import PolycubeError
+from polycubenet.hexmesh import boundary_quads, hex_volumes, partition
+from polycubenet.polycube import compress, polycube_surface, solid_genus
+from polycubenet.quality import scaled_jacobian
+from polycubenet.sampling import poisson_disk
+from polycubenet.structure import cluster_planes, extract
+
+
+def _l_block() -> Polycube:
+    occ = np.zeros((2, 1, 2), bool)
+    occ[:, 0, 0] = True
+    occ[0, 0, 1] = True
+    return Polycube(np.array([-0.4, 0.0, 0.4]), np.array([-0.15, 0.15]), np.array([-0.2, 0.0, 0.2]), occ)
+
+
+def _genus2() -> Polycube:
+    """A 5 x 3 plate with two through holes along z."""
+    occ = np.ones((5, 3, 1), bool)
+    occ[1, 1, 0] = occ[3, 1, 0] = False
+    g = np.array([-0.45, -0.3, -0.1, 0.1, 0.3, 0.45])
+    return Polycube(g, np.array([-0.25, -0.08, 0.08, 0.25]), np.array([-0.06, 0.06]), occ)
+
+
+def _cloud(poly: Polycube, n: int, noise: float, outliers: float, seed: int):
+    V, F = polycube_surface(poly.xs, poly.ys, poly.zs, poly.occupancy)
+    s = poisson_disk(V, F, n, seed=seed)
+    rng = np.random.default_rng(seed)
+    P = s.points + rng.normal(scale=noise, size=s.points.shape)
+    N = s.normals.copy()
+    k = int(outliers * n)
+    if k:
+        P = np.vstack([P, rng.uniform(P.min(0), P.max(0), size=(k, 3))])
+        N = np.vstack([N, rng.normal(size=(k, 3))])
+    return P, N
+
+
+def _same_solid(a: Polycube, b: Polycube, atol: float) -> bool:
+    ga, oa = compress([a.xs, a.ys, a.zs], a.occupancy)
+    gb, ob = compress([b.xs, b.ys, b.zs], b.occupancy)
+    return oa.shape == ob.shape and bool((oa == ob).all()) and all(np.allclose(x, y, atol=atol) for x, y in zip(ga, gb))
+
+
+@pytest.mark.parametrize("make,genus", [(_l_block, 0), (_genus2, 2)])
+@pytest.mark.parametrize("noise,outliers", [(0.0, 0.0), (0.005, 0.02)])
+def test_extract_recovers_known_polycube(make, genus, noise, outliers):
+    truth = make()
+    assert solid_genus(truth.occupancy) == genus
+    P, N = _cloud(truth, 8192, noise, outliers, seed=3)
+    got = extract(P, N, genus=genus)
+    assert _same_solid(got, truth, atol=max(3 * noise, 1e-3))
+    assert got.meta["genus"] == genus and got.meta["coverage"] > 0.95
+
+
+def test_extract_rejects_wrong_genus_with_reason():
+    P, N = _cloud(_genus2(), 8192, 0.0, 0.0, seed=1)
+    with pytest.raises(PolycubeError, match="genus 2 differs from the part's genus 1") as err:
+        extract(P, N, genus=1, part="plate.step")
+    assert "plate.step" in str(err.value)
+
+
+def test_extract_rejects_a_cloud_that_is_not_a_polycube():
+    rng = np.random.default_rng(0)
+    P = rng.normal(size=(4000, 3))
+    P /= np.linalg.norm(P, axis=1, keepdims=True)  # a sphere: normals everywhere
+    with pytest.raises(PolycubeError):
+        extract(0.5 * P, P)
+
+
+def test_cluster_planes_separates_and_merges():
+    rng = np.random.default_rng(0)
+    c = np.concatenate([rng.normal(0.0, 0.002, 300), rng.normal(0.05, 0.002, 300), rng.normal(0.052, 0.002, 10)])
+    planes = cluster_planes(c, bandwidth=0.002, min_points=5, merge=0.006)
+    assert len(planes) == 2
+    np.testing.assert_allclose(planes, [0.0, 0.05], atol=1.5e-3)
+
+
+def test_partition_is_conforming_and_fills_the_polycube():
+    poly = _genus2()
+    m = partition(poly, target_hexes=3000)
+    vol = hex_volumes(m.points, m.hexes)
+    assert (vol > 0).all()
+    cell = np.multiply.outer(np.multiply.outer(np.diff(poly.xs), np.diff(poly.ys)), np.diff(poly.zs))
+    np.testing.assert_allclose(vol.sum(), cell[poly.occupancy].sum(), rtol=1e-12)
+    np.testing.assert_allclose(scaled_jacobian(m.points, m.hexes), 1.0, atol=1e-12)
+    assert 0.7 * 3000 < len(m.hexes) < 1.4 * 3000
+    # conforming: the boundary is exactly the polycube surface (every interior face shared by two hexes)
+    q = boundary_quads(m.hexes)
+    area = 0.0
+    for quad in m.points[q]:
+        area += np.linalg.norm(np.cross(quad[1] - quad[0], quad[3] - quad[0]))
+    V, F = polycube_surface(poly.xs, poly.ys, poly.zs, poly.occupancy)
+    tri = V[F]
+    area_ref = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
+    np.testing.assert_allclose(area, area_ref, rtol=1e-9)
+    assert m.boundary.sum() == len(np.unique(q))
+
+
+def test_partition_size_controls():
+    poly = _l_block()
+    coarse = partition(poly, target_size=0.2)
+    fine = partition(poly, target_size=0.05)
+    assert len(fine.hexes) > 20 * len(coarse.hexes)
+    with pytest.raises(ValueError, match="not both"):
+        partition(poly, target_size=0.1, target_hexes=10)
