@@ -28,6 +28,7 @@ synth-preview: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/bench_sampling.py
 	$(PY) benchmarks/bench_synth.py
+	$(PY) benchmarks/bench_cpd.py
 	$(PY) benchmarks/check_hexgen_quality.py
 
 clean:
