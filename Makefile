@@ -17,7 +17,7 @@ test: $(STAMP)
 	$(PY) -m pytest -q
 
 demo: $(STAMP)
-	$(PY) -m polycubenet.demo examples/parts -o $(OUT)
+	$(PY) -m polycubenet.demo examples/parts -o $(OUT) --synthetic 3
 
 examples: $(STAMP)
 	$(PY) scripts/make_examples.py

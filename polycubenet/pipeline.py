@@ -1,0 +1,264 @@
+"""The whole spine for one part: ``mesh_part(path, source, config) -> PartResult``.
+
+load → canonical frame → Poisson-disk sample → polycube cloud (from an injected
+*source*) → outlier filter → rigid + CPD registration → structure extraction →
+regular partition → pullback (projection, harmonic interior, untangling and
+optimisation, pillowing, smoothing) → back to the part's own coordinates → quality
+report.  Runnable with no orchestrator; ``tasks/`` wraps the same stages one by one.
+
+A *polycube source* is any callable ``source(sample, V, F, config) -> PolycubeCloud``
+in the part's canonical frame:
+
+* :class:`OracleSource` -- the ground-truth polycube of a synthetic pair, sampled and
+  corrupted with noise and outliers (proves every stage before a model exists);
+* the learned model (``polycubenet.inference``) and the classical construction
+  (``polycubenet.classical``) plug in the same way.
+
+Errors: a :class:`~polycubenet.errors.PartError` (bad input) or
+:class:`~polycubenet.errors.PolycubeError` (the polycube failed validation) propagates
+with the stage recorded in ``exc.stage``; :func:`mesh_part_safe` turns them into a
+failed :class:`PartResult` so a batch goes on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Callable, Protocol
+
+import numpy as np
+
+from .atomic import write_json
+from .cleanup import remove_outliers
+from .data import HexMesh, Part, Polycube, PolycubeCloud, SurfaceSample
+from .errors import PartError, PolycubeError
+from .frame import Transform, canonicalize
+from .hexmesh import partition
+from .polycube import polycube_surface
+from .pullback import PullbackConfig, pull_back
+from .quality import QualityReport, quality_report
+from .registration import align
+from .sampling import poisson_disk, uniform_sample
+from .structure import ExtractConfig, extract
+
+
+@dataclasses.dataclass(frozen=True)
+class PipelineConfig:
+    """Parameters of :func:`mesh_part`.
+
+    Attributes
+    ----------
+    n_sample : points on the part (the model's condition and the registration target)
+    n_polycube : points of the polycube cloud (the model's output resolution)
+    n_register : polycube points used by CPD (a random subset; the field is evaluable anywhere)
+    target_hexes : approximate hex count (``target_size`` wins when set)
+    target_size : element edge length relative to the part's bounding-box diagonal
+    seed : every random choice of the run derives from it
+    """
+
+    n_sample: int = 4096
+    n_polycube: int = 16384
+    n_register: int = 4096
+    target_hexes: int | None = 5000
+    target_size: float | None = None
+    seed: int = 0
+    extract: ExtractConfig = ExtractConfig()
+    pullback: PullbackConfig = PullbackConfig()
+
+
+class PolycubeSource(Protocol):
+    def __call__(self, sample: SurfaceSample, V: np.ndarray, F: np.ndarray, config: PipelineConfig) -> PolycubeCloud: ...
+
+
+@dataclasses.dataclass
+class OracleSource:
+    """A known polycube (grid + occupancy, canonical frame) as a noisy cloud: the stand-in
+    for the model on synthetic pairs.
+
+    ``noise`` is the Gaussian sigma and ``outliers`` the fraction of uniform outliers in
+    the bounding box (with random normals), both relative to the diagonal (1).
+    """
+
+    polycube: Polycube
+    noise: float = 0.005
+    outliers: float = 0.02
+
+    def __call__(self, sample, V, F, config: PipelineConfig) -> PolycubeCloud:
+        p = self.polycube
+        Vp, Fp = polycube_surface(p.xs, p.ys, p.zs, p.occupancy)
+        s = poisson_disk(Vp, Fp, config.n_polycube, seed=config.seed + 17)
+        rng = np.random.default_rng(config.seed + 23)
+        P = s.points + rng.normal(scale=self.noise, size=s.points.shape)
+        N = s.normals.copy()
+        k = int(round(self.outliers * len(P)))
+        if k:
+            lo, hi = P.min(axis=0), P.max(axis=0)
+            N_out = rng.normal(size=(k, 3))
+            P = np.vstack([P, rng.uniform(lo, hi, size=(k, 3))])
+            N = np.vstack([N, N_out / np.linalg.norm(N_out, axis=1, keepdims=True)])
+        return PolycubeCloud(P, N, meta={"provenance": "oracle", "noise": self.noise, "outliers": self.outliers})
+
+
+@dataclasses.dataclass
+class PartResult:
+    """What :func:`mesh_part` produced for one part (``status`` is ``"meshed"`` or ``"failed"``)."""
+
+    name: str
+    status: str
+    stage: str
+    error: str | None = None
+    timings: dict = dataclasses.field(default_factory=dict)
+    part_meta: dict = dataclasses.field(default_factory=dict)
+    mesh: HexMesh | None = None
+    polycube: Polycube | None = None
+    cloud: PolycubeCloud | None = None
+    transform: Transform | None = None
+    report: QualityReport | None = None
+    surface: tuple[np.ndarray, np.ndarray] | None = None
+
+    def row(self) -> dict:
+        """One manifest row (plain types)."""
+        q = self.report.to_dict() if self.report is not None else {}
+        return {
+            "part": self.name,
+            "status": self.status,
+            "stage": self.stage,
+            "error": self.error,
+            "timings": {k: round(v, 4) for k, v in self.timings.items()},
+            "genus": self.part_meta.get("genus"),
+            "provenance": (self.cloud.meta.get("provenance") if self.cloud is not None else None),
+            "hexes": q.get("hex_count"),
+            "sj_min": q.get("sj_min"),
+            "sj_avg": q.get("sj_avg"),
+            "valid": q.get("valid"),
+            "hausdorff": (q.get("surface") or {}).get("hausdorff"),
+        }
+
+    def write(self, out_dir: str | Path, formats: tuple[str, ...] = ("vtu",)) -> Path:
+        """Write the mesh in ``formats``, ``polycube.npz``, ``quality.*`` and ``result.json`` under ``out_dir``."""
+        from .io import write_hex
+
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        if self.mesh is not None:
+            for fmt in formats:
+                fmt = fmt.lstrip(".")
+                keeps_cells = fmt in ("vtu", "vtk", "msh") and self.report is not None
+                cell = {"scaled_jacobian": self.report.sj} if keeps_cells else None
+                write_hex(self.mesh, out / f"hex.{fmt}", cell_data=cell)
+        if self.polycube is not None:
+            self.polycube.save(out / "polycube.npz")
+        if self.report is not None:
+            self.report.write(out)
+        write_json(out / "result.json", self.row())
+        return out
+
+
+class _Clock:
+    def __init__(self, timings: dict):
+        self.timings = timings
+
+    def __call__(self, name: str):
+        clock = self
+
+        class _Ctx:
+            def __enter__(self):
+                self.t0 = time.perf_counter()
+                clock.stage = name
+
+            def __exit__(self, *exc):
+                clock.timings[name] = time.perf_counter() - self.t0
+                return False
+
+        return _Ctx()
+
+
+def mesh_surface(
+    V: np.ndarray,
+    F: np.ndarray,
+    source: PolycubeSource | Callable,
+    config: PipelineConfig = PipelineConfig(),
+    *,
+    name: str = "part",
+    part_meta: dict | None = None,
+    canonical: bool = False,
+) -> PartResult:
+    """The spine on a validated surface ``(V, F)`` (see the module docstring).
+
+    ``canonical=True`` says ``V`` is already in the canonical frame (synthetic pairs),
+    so the frame stage is the identity.  Raises PartError / PolycubeError with
+    ``exc.stage`` set.
+    """
+    timings: dict = {}
+    clock = _Clock(timings)
+    res = PartResult(name=name, status="failed", stage="frame", timings=timings, part_meta=dict(part_meta or {}))
+    try:
+        with clock("frame"):
+            if canonical:
+                Vc, T = np.asarray(V, float), Transform.identity()
+            else:
+                Vc, T = canonicalize(V, F)
+        res.transform = T
+        genus = res.part_meta.get("genus")
+        with clock("sample"):
+            sample = poisson_disk(Vc, F, config.n_sample, seed=config.seed)
+        with clock("polycube"):
+            cloud = source(sample, Vc, F, config)
+        res.cloud = cloud
+        with clock("cleanup"):
+            P, N, keep = remove_outliers(cloud.points, cloud.normals)
+        with clock("extract"):
+            poly = extract(P, N, genus=genus, config=config.extract, part=name)
+            poly.meta["provenance"] = cloud.meta.get("provenance")
+        res.polycube = poly
+        with clock("register"):
+            rng = np.random.default_rng(config.seed + 5)
+            sub = rng.choice(len(P), size=min(config.n_register, len(P)), replace=False)
+            corr = align(sample, P[sub], N[sub])
+        with clock("partition"):
+            if config.target_size is not None:
+                mesh_pc = partition(poly, target_size=config.target_size)
+            else:
+                mesh_pc = partition(poly, target_hexes=config.target_hexes)
+        with clock("pullback"):
+            mesh_c = pull_back(mesh_pc, corr.map_points, Vc, F, config.pullback)
+        with clock("report"):
+            mesh = HexMesh(T.inverse(mesh_c.points), mesh_c.hexes, mesh_c.boundary, meta=dict(mesh_c.meta))
+            Vo = np.asarray(V, float) if not canonical else Vc
+            res.report = quality_report(mesh, surface=(Vo, F))
+        res.mesh = mesh
+        res.surface = (Vo, np.asarray(F))
+        res.status, res.stage = "meshed", "report"
+    except (PartError, PolycubeError) as exc:
+        exc.stage = getattr(clock, "stage", "frame")
+        res.stage = exc.stage
+        raise
+    return res
+
+
+def mesh_part(path: str | Path, source: PolycubeSource | Callable, config: PipelineConfig = PipelineConfig(), **load_kw) -> PartResult:
+    """Load ``path`` (:func:`polycubenet.io.load_part`) and run :func:`mesh_surface` on it."""
+    from .io import load_part
+
+    t0 = time.perf_counter()
+    try:
+        part: Part = load_part(path, **load_kw)
+    except PartError as exc:
+        exc.stage = "load"
+        raise
+    t_load = time.perf_counter() - t0
+    res = mesh_surface(part.vertices, part.faces, source, config, name=Path(path).name, part_meta=part.meta)
+    res.timings = {"load": t_load, **res.timings}
+    return res
+
+
+def mesh_part_safe(path: str | Path, source, config: PipelineConfig = PipelineConfig(), **kw) -> PartResult:
+    """:func:`mesh_part` that returns a failed :class:`PartResult` instead of raising for a bad
+    part or an invalid polycube (anything else is a bug and still raises)."""
+    try:
+        return mesh_part(path, source, config, **kw)
+    except (PartError, PolycubeError) as exc:
+        return PartResult(
+            name=Path(path).name, status="failed", stage=getattr(exc, "stage", "load"), error=f"{type(exc).__name__}: {exc}"
+        )

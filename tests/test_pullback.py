@@ -1,0 +1,307 @@
+"""Pull-back of polycube hex meshes onto parts: identity, exact and perturbed synthetic maps,
+pillowing, untangling, the analytic scaled-Jacobian gradient and guarded smoothing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from polycubenet.data import HexMesh, Polycube
+from polycubenet.hexmesh import boundary_quads, hex_volumes, partition
+from polycubenet.polycube import polycube_surface
+from polycubenet.pullback import (
+    CORNER_FRAMES,
+    PartSurface,
+    PullbackConfig,
+    boundary_face_counts,
+    chart_labels,
+    classify_boundary,
+    guarded_smooth,
+    harmonic_extension,
+    hex_edges,
+    optimise_quality,
+    pillow,
+    pull_back,
+    sj_terms,
+)
+from polycubenet.quality import quality_report, scaled_jacobian
+
+#: a genus-4 synthetic plate (searched in seeds 0..50 for genus >= 2: rounded holes and edges,
+#: the raw map leaves a folded hex, about 1.5 s per pull-back)
+SYNTH_SEED = 8
+SYNTH_HEXES = 2500
+
+
+def _polycube(occ, xs, ys, zs) -> Polycube:
+    return Polycube(np.asarray(xs, float), np.asarray(ys, float), np.asarray(zs, float), np.asarray(occ, bool))
+
+
+def l_polycube() -> Polycube:
+    """An L-block: 3 x 1 x 1 bottom bar plus a 1 x 1 x 1 block on one end (cells of the grid)."""
+    occ = np.zeros((2, 1, 2), bool)
+    occ[0, 0, 0] = occ[1, 0, 0] = occ[0, 0, 1] = True
+    return _polycube(occ, [0, 1, 3], [0, 1], [0, 1, 2])
+
+
+def structured_box(n: int) -> HexMesh:
+    """An n x n x n block of unit cubes (VTK order, positive)."""
+    pc = _polycube(np.ones((1, 1, 1), bool), [0, n], [0, n], [0, n])
+    return partition(pc, target_size=1.0)
+
+
+def smooth_perturbation(amplitude: float, seed: int, scale: float = 0.35):
+    """A smooth displacement field (K, 3) -> (K, 3) of magnitude about ``amplitude``."""
+    rng = np.random.default_rng(seed)
+    k = rng.normal(size=(3, 3, 3)) / scale
+    phase = rng.uniform(0, 2 * np.pi, size=(3, 3))
+
+    def field(p):
+        out = np.empty_like(p)
+        for a in range(3):
+            out[:, a] = np.sin(p @ k[a].T + phase[a]).mean(axis=1)
+        return amplitude * out
+
+    return field
+
+
+@pytest.fixture(scope="module")
+def synth_pair():
+    from polycubenet.synth import make_pair
+
+    pair = make_pair(SYNTH_SEED, n_cond=64, n_target=64, sampler="uniform")
+    assert pair.genus >= 2
+    return pair, partition(pair.polycube, target_hexes=SYNTH_HEXES)
+
+
+# --------------------------------------------------------------------------- building blocks
+
+
+def test_sj_terms_match_quality_and_gradient_matches_torch():
+    torch = pytest.importorskip("torch")
+    rng = np.random.default_rng(0)
+    m = structured_box(3)
+    X = m.points + rng.normal(scale=0.15, size=m.points.shape)
+    s = sj_terms(X, m.hexes)
+    assert np.allclose(s.min(axis=1), scaled_jacobian(X, m.hexes), atol=1e-12)
+    W = rng.normal(size=s.shape)
+    _, g = sj_terms(X, m.hexes, lambda t: W)
+
+    Xt = torch.tensor(X, requires_grad=True)
+    C = Xt[torch.as_tensor(m.hexes)]
+    fr = torch.as_tensor(CORNER_FRAMES)
+    x1 = C[:, 1] + C[:, 2] + C[:, 5] + C[:, 6] - C[:, 0] - C[:, 3] - C[:, 4] - C[:, 7]
+    x2 = C[:, 2] + C[:, 3] + C[:, 6] + C[:, 7] - C[:, 0] - C[:, 1] - C[:, 4] - C[:, 5]
+    x3 = C[:, 4] + C[:, 5] + C[:, 6] + C[:, 7] - C[:, 0] - C[:, 1] - C[:, 2] - C[:, 3]
+    V = torch.cat([torch.stack([x1, x2, x3], 1)[:, None], C[:, fr[:, 1:]] - C[:, fr[:, 0]][:, :, None]], 1)
+    det = (V[..., 0, :] * torch.cross(V[..., 1, :], V[..., 2, :], dim=-1)).sum(-1)
+    st = det / ((V * V).sum(-1).prod(-1)).sqrt()
+    (st * torch.as_tensor(W)).sum().backward()
+    assert np.allclose(st.detach().numpy(), s, atol=1e-12)
+    assert np.allclose(Xt.grad.numpy(), g, rtol=1e-9, atol=1e-9 * np.abs(g).max())
+
+
+def test_classify_boundary_on_l_block():
+    m = partition(l_polycube(), target_size=0.5)
+    bs = classify_boundary(m.points, m.hexes)
+    # the L-block has 12 polycube corners, all of them "corner" nodes (3 distinct normals)
+    corner_pts = m.points[bs.nodes[bs.kind >= 3]]
+    assert len(corner_pts) == 12
+    assert set(map(tuple, corner_pts.tolist())) == {
+        (0, 0, 0), (3, 0, 0), (0, 1, 0), (3, 1, 0), (3, 0, 1), (3, 1, 1),
+        (1, 0, 1), (1, 1, 1), (0, 0, 2), (1, 0, 2), (0, 1, 2), (1, 1, 2),
+    }
+    # edge nodes carry the direction of their polycube edge: perpendicular to both normals
+    e = bs.kind == 2
+    assert e.sum() > 0 and np.allclose(np.abs(bs.tangent[e]).sum(axis=1), 1.0)
+    # quad labels agree with the outward quad normals
+    q = bs.quads
+    n = np.cross(m.points[q[:, 1]] - m.points[q[:, 0]], m.points[q[:, 3]] - m.points[q[:, 0]])
+    axis = np.argmax(np.abs(n), axis=1)
+    assert np.array_equal(bs.quad_label, 2 * axis + (n[np.arange(len(n)), axis] > 0))
+
+
+def test_chart_labels_follow_normals_on_l_block():
+    pc = l_polycube()
+    m = partition(pc, target_size=0.25)
+    V, F = polycube_surface(pc.xs, pc.ys, pc.zs, pc.occupancy, h=0.2)
+    surf = PartSurface(V, F)
+    bs = classify_boundary(m.points, m.hexes)
+    face = bs.kind == 1
+    nodes = bs.nodes[face]
+    lab = np.argmax(bs.label_mask[face], axis=1)
+    normals = np.zeros((len(nodes), 3))
+    normals[np.arange(len(nodes)), lab // 2] = np.where(lab % 2 == 1, 1.0, -1.0)
+    got = chart_labels(surf.centroids, surf.normals, m.points[nodes], normals, lab, np.full(len(nodes), 0.25))
+    axis = np.argmax(np.abs(surf.normals), axis=1)
+    want = 2 * axis + (surf.normals[np.arange(len(F)), axis] > 0)
+    assert np.array_equal(got, want)
+
+
+def test_part_surface_features_of_l_block():
+    pc = l_polycube()
+    V, F = polycube_surface(pc.xs, pc.ys, pc.zs, pc.occupancy, h=0.25)
+    surf = PartSurface(V, F, feature_angle_deg=50.0)
+    # every sharp segment lies on a polycube edge: two of its coordinates are grid planes
+    mid = 0.5 * (V[surf.seg[:, 0]] + V[surf.seg[:, 1]])
+    on_plane = np.stack([np.isin(mid[:, a], g) for a, g in enumerate((pc.xs, pc.ys, pc.zs))], axis=1)
+    assert on_plane.sum(axis=1).min() == 2
+    # 18 polycube edges: the L profile (perimeter 10) twice, plus its 6 corners along y
+    length = np.linalg.norm(V[surf.seg[:, 0]] - V[surf.seg[:, 1]], axis=1).sum()
+    assert length == pytest.approx(26.0)
+    # the 12 corners are the feature vertices
+    assert len(surf.feature_vertices) == 12
+    P, d, _ = surf.closest_on_curves(np.array([[1.5, -0.2, 0.1]]))
+    assert np.allclose(P, [[1.5, 0.0, 0.0]]) and d[0] == pytest.approx(np.hypot(0.2, 0.1))
+
+
+def test_harmonic_extension_is_linear_on_a_grid():
+    m = structured_box(4)
+    b = m.boundary
+    f = m.points @ np.array([1.0, -2.0, 0.5])  # linear: discrete-harmonic on a regular grid
+    vals = np.where(b, f, 0.0)[:, None]
+    out = harmonic_extension(hex_edges(m.hexes), len(m.points), b, vals)
+    assert np.allclose(out[:, 0], f, atol=1e-9)
+
+
+def test_pillow_topology_and_orientation():
+    m = structured_box(3)
+    before = boundary_face_counts(m.hexes)
+    assert (before >= 2).sum() == 20  # 8 corner + 12 edge cubes of a 3 x 3 x 3 block
+    X, H, inner = pillow(m.points, m.hexes, thickness=0.3)
+    Q = len(boundary_quads(m.hexes))
+    assert len(H) == len(m.hexes) + Q and len(X) == len(m.points) + m.boundary.sum()
+    counts = boundary_face_counts(H)
+    assert counts.max() == 1 and (counts[len(m.hexes):] == 1).all() and (counts[: len(m.hexes)] == 0).all()
+    assert (hex_volumes(X, H) > 0).all()
+    # outer nodes stay, inner copies are inside the box
+    assert np.array_equal(X[: len(m.points)], m.points)
+    ins = X[len(m.points):]
+    assert (ins > 0).all() and (ins < 3).all()
+    assert np.array_equal(np.flatnonzero(inner >= 0), np.flatnonzero(m.boundary))
+
+
+def test_optimise_untangles_a_tangled_mesh():
+    m = structured_box(4)
+    X = m.points.copy()
+    interior = np.flatnonzero(~m.boundary)
+    # push two interior nodes through their neighbours
+    X[interior[0]] += [1.3, 0.9, 0.0]
+    X[interior[-1]] -= [0.0, 1.2, 1.1]
+    sj0 = scaled_jacobian(X, m.hexes)
+    assert sj0.min() < 0
+    Y, info = optimise_quality(X, m.hexes, movable=~m.boundary, config=PullbackConfig(optimise_iterations=300))
+    sj = scaled_jacobian(Y, m.hexes)
+    assert sj.min() > 0.5
+    assert info["sj_min_start"] == pytest.approx(sj0.min()) and info["sj_min"] == pytest.approx(sj.min())
+    assert np.array_equal(Y[m.boundary], m.points[m.boundary])  # fixed nodes did not move
+
+
+def test_guarded_smoothing_never_lowers_the_minimum():
+    rng = np.random.default_rng(1)
+    m = structured_box(4)
+    X = m.points.copy()
+    X[~m.boundary] += rng.normal(scale=0.2, size=((~m.boundary).sum(), 3))
+    sj0 = scaled_jacobian(X, m.hexes)
+    Y, info = guarded_smooth(X, m.hexes, ~m.boundary, sweeps=5, step=0.5)
+    sj = scaled_jacobian(Y, m.hexes)
+    assert sj.min() >= sj0.min() - 1e-12
+    assert sj.mean() > sj0.mean()
+    assert np.array_equal(Y[m.boundary], X[m.boundary])
+    assert info["moved"][0] > 0
+
+
+# --------------------------------------------------------------------------- the pipeline
+
+
+@pytest.mark.parametrize("interior", ["correction", "harmonic"])
+def test_identity_on_l_block_without_pillow_is_exact(interior):
+    pc = l_polycube()
+    m = partition(pc, target_size=0.25)
+    V, F = polycube_surface(pc.xs, pc.ys, pc.zs, pc.occupancy)
+    out = pull_back(m, lambda p: p.copy(), V, F, PullbackConfig(pillow=False, interior=interior))
+    assert out.hexes.shape == m.hexes.shape
+    assert np.allclose(out.points, m.points, atol=1e-6)
+    rep = quality_report(out, surface=(V, F), n_samples=20_000)
+    assert rep.sj_min > 0.999 and rep.surface["hausdorff"] < 1e-6
+    assert out.meta["valid"] and out.meta["pillowed"] is False
+    assert out.meta["projection"]["snapped"]["corner"] == 12
+
+
+def test_identity_on_l_block_with_pillow():
+    pc = l_polycube()
+    m = partition(pc, target_size=0.25)
+    V, F = polycube_surface(pc.xs, pc.ys, pc.zs, pc.occupancy)
+    out = pull_back(m, lambda p: p.copy(), V, F)
+    H0 = len(m.hexes)
+    assert len(out.hexes) == H0 + len(boundary_quads(m.hexes))
+    sj = scaled_jacobian(out.points, out.hexes)
+    # the original hexes stay near-perfect (they give a little to the pillow layer's worst)
+    assert sj[:H0].mean() > 0.95 and sj[:H0].min() > 0.8
+    assert sj[H0:].min() > 0.45  # pillow hexes: 45 degrees at convex edges, less at corners
+    rep = quality_report(out, surface=(V, F), n_samples=20_000)
+    assert rep.valid and rep.surface["hausdorff"] < 1e-6
+    assert out.meta["multi_boundary_before"] == 80 and out.meta["multi_boundary_after"] == 0
+    assert out.boundary.sum() == m.boundary.sum()
+    # boundary nodes may slide on the surface, but the snapped polycube corners stay put
+    bs = classify_boundary(m.points, m.hexes)
+    corners = bs.nodes[bs.kind >= 3]
+    assert np.allclose(out.points[corners], m.points[corners], atol=1e-6)
+
+
+def test_synth_pair_exact_map(synth_pair):
+    pair, m = synth_pair
+    out = pull_back(m, pair.polycube_to_shape, pair.shape_vertices, pair.faces)
+    rep = quality_report(out, surface=(pair.shape_vertices, pair.faces), n_samples=50_000)
+    assert rep.valid and rep.sj_min > 0, rep.summary()
+    assert rep.sj_avg >= 0.8
+    assert rep.surface["hausdorff"] <= 0.01
+    assert out.meta["valid"] and not out.meta["warnings"]
+    assert out.meta["multi_boundary_before"] > 0 and out.meta["multi_boundary_after"] == 0
+    assert set(out.meta["timings"]) >= {"boundary", "interior", "optimise", "pillow", "optimise_pillow", "total"}
+    # the raw map leaves a folded hex on this part (rounded edges): the pipeline removed it
+    assert out.meta["stages"]["mapped"]["sj_min"] <= 0 < 0.3 < out.meta["sj_min"] == pytest.approx(rep.sj_min)
+
+
+def test_synth_pair_perturbed_map(synth_pair):
+    pair, m = synth_pair
+    field = smooth_perturbation(0.01, seed=3)
+    err = np.linalg.norm(field(m.points), axis=1)
+    assert 0.003 < err.max() < 0.02  # about 1% of the diagonal (the part's diagonal is 1)
+
+    def to_part(p):
+        return pair.polycube_to_shape(p) + field(p)
+
+    out = pull_back(m, to_part, pair.shape_vertices, pair.faces)
+    rep = quality_report(out, surface=(pair.shape_vertices, pair.faces), n_samples=50_000)
+    assert rep.valid and rep.sj_min > 0, rep.summary()
+    assert rep.sj_avg >= 0.8
+    assert rep.surface["hausdorff"] <= 0.015
+
+
+def test_invalid_result_is_flagged_not_silent():
+    # a mirroring map turns every hex inside out; with no optimisation nothing can fix it
+    pc = l_polycube()
+    m = partition(pc, target_size=0.5)
+    V, F = polycube_surface(pc.xs, pc.ys, pc.zs, pc.occupancy)
+    mirror = np.array([-1.0, 1.0, 1.0])
+    cfg = PullbackConfig(pillow=False, optimise_iterations=0, smoothing_sweeps=0, release_rounds=0)
+    out = pull_back(m, lambda p: p * mirror, V * mirror, F[:, ::-1], cfg)
+    assert out.meta["valid"] is False
+    assert any("not valid" in w for w in out.meta["warnings"])
+    assert not quality_report(out).valid
+
+
+def test_bad_inputs_raise():
+    pc = l_polycube()
+    m = partition(pc, target_size=0.5)
+    V, F = polycube_surface(pc.xs, pc.ys, pc.zs, pc.occupancy)
+    with pytest.raises(ValueError, match="F must be"):
+        pull_back(m, lambda p: p, V, F[:, :2])
+    with pytest.raises(ValueError, match="NaN"):
+        pull_back(m, lambda p: p * np.nan, V, F)
+    with pytest.raises(ValueError, match="shape"):
+        pull_back(m, lambda p: p[:-1], V, F)
+    with pytest.raises(ValueError, match="interior"):
+        PullbackConfig(interior="nope")
+    with pytest.raises(ValueError, match="pillow_thickness"):
+        PullbackConfig(pillow_thickness=1.5)
