@@ -61,26 +61,11 @@ from scipy.spatial import cKDTree
 from . import tol
 from .data import HexMesh
 from .hexmesh import HEX_EDGES, boundary_quads, boundary_vertex_mask
-from .quality import scaled_jacobian_and_degenerate
+from .quality import CORNER_FRAMES, scaled_jacobian_and_degenerate  # verdict's corner order
 
 #: polycube patch labels: label ``2 * axis + (sign > 0)``
 LABELS = ("-x", "+x", "-y", "+y", "-z", "+z")
 
-#: For each corner k: (k, a, b, c) with the corner Jacobian det[p_a - p_k, p_b - p_k, p_c - p_k]
-#: (verdict's order, as in :mod:`polycubenet.quality`)
-CORNER_FRAMES = np.array(
-    [
-        [0, 1, 3, 4],
-        [1, 2, 0, 5],
-        [2, 3, 1, 6],
-        [3, 0, 2, 7],
-        [4, 7, 5, 0],
-        [5, 4, 6, 1],
-        [6, 5, 7, 2],
-        [7, 6, 4, 3],
-    ],
-    dtype=np.int64,
-)
 
 # node kinds for the boundary constraint
 _CHART, _CURVE, _FIXED, _FREE = 0, 1, 2, 3

@@ -54,7 +54,7 @@ from .hexmesh import HEX_EDGES, boundary_quads, hex_volumes, quads_to_triangles
 
 #: For each corner k: (k, a, b, c) such that the Jacobian at corner k is
 #: det[p_a - p_k, p_b - p_k, p_c - p_k] (verdict's order).
-_CORNER_FRAMES = np.array(
+CORNER_FRAMES = np.array(
     [
         [0, 1, 3, 4],
         [1, 2, 0, 5],
@@ -71,7 +71,7 @@ _CORNER_FRAMES = np.array(
 #: 12-edge index of each corner frame's three vectors (to reuse the collapse test)
 _EDGE_ID = {tuple(sorted(e)): i for i, e in enumerate(HEX_EDGES.tolist())}
 _CORNER_EDGES = np.array(
-    [[_EDGE_ID[tuple(sorted((f[0], f[j])))] for j in (1, 2, 3)] for f in _CORNER_FRAMES.tolist()], dtype=np.int64
+    [[_EDGE_ID[tuple(sorted((f[0], f[j])))] for j in (1, 2, 3)] for f in CORNER_FRAMES.tolist()], dtype=np.int64
 )
 
 _CHUNK = 100_000
@@ -84,8 +84,8 @@ def _sj_chunk(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     x2 = X[:, 2] + X[:, 3] + X[:, 6] + X[:, 7] - X[:, 0] - X[:, 1] - X[:, 4] - X[:, 5]
     x3 = X[:, 4] + X[:, 5] + X[:, 6] + X[:, 7] - X[:, 0] - X[:, 1] - X[:, 2] - X[:, 3]
     centre = np.stack([x1, x2, x3], axis=1)[:, None]  # (h, 1, 3, 3)
-    base = X[:, _CORNER_FRAMES[:, 0]]  # (h, 8, 3)
-    corner = X[:, _CORNER_FRAMES[:, 1:]] - base[:, :, None, :]  # (h, 8, 3, 3)
+    base = X[:, CORNER_FRAMES[:, 0]]  # (h, 8, 3)
+    corner = X[:, CORNER_FRAMES[:, 1:]] - base[:, :, None, :]  # (h, 8, 3, 3)
     V = np.concatenate([centre, corner], axis=1)  # (h, 9, 3, 3): term, vector, xyz
 
     det = np.einsum("htk,htk->ht", V[:, :, 0], np.cross(V[:, :, 1], V[:, :, 2]))
