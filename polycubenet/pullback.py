@@ -142,6 +142,11 @@ class PullbackConfig:
         (the pillow layer changes the hexes the quality terms are about).
     pillow_thickness : float
         Inner copies go about this x the local edge length inward (see :func:`pillow`).
+    pillow_fix_boundary : bool
+        After pillowing, keep the surface nodes where the projection put them and let only
+        the inner copies and the interior move: letting them slide to help the pillow hexes
+        cuts corners at features (on held-out pairs the Hausdorff distance fell from 2.6 %
+        to 1.0 % of the diagonal on the worst part, at a small cost in SJ).
     release_sj : float
         After the optimisation, the boundary nodes of every hex corner whose verdict term is
         below this (the corner and its three edge neighbours) are released: unpinned from a
@@ -183,6 +188,7 @@ class PullbackConfig:
     edge_regularisation: float = 0.3
     untangle_only_before_pillow: bool = True
     pillow_thickness: float = 0.35
+    pillow_fix_boundary: bool = True
     release_sj: float = 0.1
     release_rounds: int = 2
     release_regularisation: float = 0.03
@@ -1374,6 +1380,9 @@ def pull_back(
         multi_after = int((boundary_face_counts(hexes) >= 2).sum())
         stages["pillowed"] = _stats(X, hexes)
         movable = np.concatenate([movable, np.ones(len(X) - n_pts, dtype=bool)])
+        if config.pillow_fix_boundary:  # the surface nodes stay where projection put them
+            movable = movable.copy()
+            movable[bs.nodes] = False
         t0 = time.perf_counter()
         X, opt_info2 = optimise_quality(
             X, hexes, movable=movable, project=proj, project_nodes=bs.nodes, config=config,
