@@ -34,3 +34,13 @@ def torus():
 
     m = trimesh.creation.torus(1.0, 0.35, major_sections=48, minor_sections=24)
     return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
+
+
+@pytest.fixture(scope="session")
+def l_block_canonical(l_block):
+    """The L-block centred and scaled to diagonal 1, axes kept (canonical frame without rotation)."""
+    from polycubenet.frame import canonicalize
+
+    V, F = l_block
+    Vc, _ = canonicalize(V, F, rotate=False)
+    return Vc, F

@@ -7,21 +7,13 @@ import pytest
 from scipy.spatial import cKDTree
 
 from polycubenet.cleanup import default_k, remove_outliers, spacing_l1
-from polycubenet.frame import canonicalize
 from polycubenet.sampling import poisson_disk, uniform_sample
 
 
 @pytest.fixture(scope="module")
-def lblock_canonical(l_block):
-    V, F = l_block
-    Vc, _ = canonicalize(V, F, rotate=False)
-    return Vc, F
-
-
-@pytest.fixture(scope="module")
-def noisy_cloud(lblock_canonical):
+def noisy_cloud(l_block_canonical):
     """4096 Poisson-disk points on the L-block (diagonal 1) + Gaussian noise of 0.1 spacing."""
-    V, F = lblock_canonical
+    V, F = l_block_canonical
     s = poisson_disk(V, F, 4096, seed=3)
     spacing = float(np.median(cKDTree(s.points).query(s.points, k=2)[0][:, 1]))
     rng = np.random.default_rng(3)
@@ -36,8 +28,8 @@ def _surface_distance(V, F, points):
     return d
 
 
-def test_removes_uniform_outliers(lblock_canonical, noisy_cloud):
-    V, F = lblock_canonical
+def test_removes_uniform_outliers(l_block_canonical, noisy_cloud):
+    V, F = l_block_canonical
     pts, nrm, spacing = noisy_cloud
     rng = np.random.default_rng(7)
     n_out = int(0.02 * len(pts))
@@ -63,8 +55,8 @@ def test_removes_uniform_outliers(lblock_canonical, noisy_cloud):
 
 
 @pytest.mark.parametrize("kind", ["poisson", "uniform"])
-def test_clean_cloud_loses_under_one_percent(lblock_canonical, noisy_cloud, kind):
-    V, F = lblock_canonical
+def test_clean_cloud_loses_under_one_percent(l_block_canonical, noisy_cloud, kind):
+    V, F = l_block_canonical
     if kind == "poisson":
         pts = noisy_cloud[0]
     else:  # white noise: Rayleigh-tailed nearest-neighbour distances, the harder case
@@ -74,8 +66,8 @@ def test_clean_cloud_loses_under_one_percent(lblock_canonical, noisy_cloud, kind
     assert 1.0 - mask.mean() < 0.01
 
 
-def test_order_two_catches_outlier_pairs(lblock_canonical, noisy_cloud):
-    V, F = lblock_canonical
+def test_order_two_catches_outlier_pairs(l_block_canonical, noisy_cloud):
+    V, F = l_block_canonical
     pts, _, spacing = noisy_cloud
     rng = np.random.default_rng(5)
     lo, hi = V.min(0), V.max(0)

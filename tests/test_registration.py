@@ -7,7 +7,6 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from polycubenet.frame import canonicalize
 from polycubenet.registration import (
     CPDResult,
     Correspondence,
@@ -27,10 +26,8 @@ def smooth_warp(p: np.ndarray, a: float = 0.05, wavelength: float = 1.0) -> np.n
 
 
 @pytest.fixture(scope="module")
-def part(l_block):
-    V, F = l_block
-    Vc, _ = canonicalize(V, F, rotate=False)
-    return Vc, F
+def part(l_block_canonical):
+    return l_block_canonical
 
 
 @pytest.fixture(scope="module")
