@@ -529,3 +529,12 @@ def compress(coords: list[np.ndarray], occ: np.ndarray) -> tuple[list[np.ndarray
         occ = np.compress(keep_cells, occ, axis=a)
         coords[a] = coords[a][keep_planes]
     return coords, occ
+
+
+def same_structure(got, truth, atol: float) -> bool:
+    """Whether two polycubes (objects with ``xs, ys, zs, occupancy``) have the same structure:
+    the same minimal grid topology and occupancy, with plane positions within ``atol``."""
+    ga, oa = compress([got.xs, got.ys, got.zs], got.occupancy)
+    gb, ob = compress([truth.xs, truth.ys, truth.zs], truth.occupancy)
+    return (oa.shape == ob.shape and bool((oa == ob).all())
+            and all(np.allclose(a, b, atol=atol) for a, b in zip(ga, gb)))

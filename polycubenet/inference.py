@@ -1,0 +1,171 @@
+"""Generate polycube clouds with a trained PolycubeNet: any N_in and N_out, batched, CPU or CUDA.
+
+* :func:`load_model` reads a checkpoint (default: the shipped one, :data:`DEFAULT_CHECKPOINT`)
+  once per (path, device) and keeps it.
+* :func:`plan_batches` groups requests of equal resolution ``(N_in, N_out)`` and packs
+  each group into batches whose total point count stays under a budget, so a mixed
+  library runs in few passes and never runs out of memory; a request larger than the
+  budget runs alone, its point side processed in chunks (memory linear in points).
+* :func:`generate` runs DDIM for a list of conditions and returns ``(N_out, 6)`` clouds
+  (xyz + unit normals, the conditions' canonical frame).  Every request draws its noise
+  from its own generator seeded by ``(seed, request index)``, so the output of a
+  request does not depend on which batch it landed in.
+* :class:`ModelSource` plugs the model into :func:`polycubenet.pipeline.mesh_part`.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+
+from .data import PolycubeCloud
+from .model.checkpoint import Loaded, load_checkpoint
+from .model.diffusion import from_network, to_network
+
+DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "polycubenet-cpu.pt"
+DEFAULT_POINT_BUDGET = 1 << 19  # condition + output points per batch
+DEFAULT_STEPS_CPU = 64  # DDIM steps when running on a CPU (stride 4 = 256 steps on a GPU)
+
+_CACHE: dict = {}
+
+
+def default_device() -> str:
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def load_model(checkpoint: str | Path | Loaded | None = None, device: str | None = None) -> Loaded:
+    """The model of ``checkpoint`` (a path, an already loaded model, or None for the shipped one)."""
+    if isinstance(checkpoint, Loaded):
+        return checkpoint
+    path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
+    device = device or default_device()
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"model checkpoint {path} not found (train one: python -m polycubenet.train, then "
+            f"python -m polycubenet.evaluate --publish)")
+    key = (str(path.resolve()), path.stat().st_mtime_ns, device)
+    if key not in _CACHE:
+        _CACHE.clear()
+        _CACHE[key] = load_checkpoint(path, device=device)
+    return _CACHE[key]
+
+
+def plan_batches(n_in: Sequence[int], n_out: Sequence[int], point_budget: int = DEFAULT_POINT_BUDGET) -> list[list[int]]:
+    """Request indices grouped into batches: equal ``(n_in, n_out)`` in a batch, total points
+    ``sum(n_in + n_out) <= point_budget`` (a single larger request gets a batch of its own).
+
+    Batches come largest resolution first; within a group the original order is kept.
+    """
+    if len(n_in) != len(n_out):
+        raise ValueError(f"n_in has {len(n_in)} entries, n_out {len(n_out)}")
+    if point_budget < 1:
+        raise ValueError("point_budget must be >= 1")
+    groups: dict[tuple[int, int], list[int]] = {}
+    for i, key in enumerate(zip(map(int, n_in), map(int, n_out))):
+        groups.setdefault(key, []).append(i)
+    batches: list[list[int]] = []
+    for (a, b), idx in sorted(groups.items(), key=lambda kv: -(kv[0][0] + kv[0][1])):
+        per = max(1, point_budget // (a + b))
+        batches.extend(idx[s : s + per] for s in range(0, len(idx), per))
+    return batches
+
+
+def _sample_batch(loaded: Loaded, conds: list[np.ndarray], n_out: int, seeds: list[int], *, steps, stride, eta,
+                  device: str, chunk: int | None, progress: Callable | None) -> list[np.ndarray]:
+    model, diffusion = loaded.model, loaded.diffusion
+    scale = model.config.xyz_scale
+    dev = torch.device(device)
+    cond = to_network(torch.as_tensor(np.stack(conds), dtype=torch.float32, device=dev), None, scale)
+    gens = [torch.Generator(device=dev).manual_seed(int(s)) for s in seeds]
+    autocast = (lambda: torch.autocast("cuda", dtype=torch.bfloat16)) if dev.type == "cuda" else None
+    x = diffusion.sample(model, cond, n_out, steps=steps, stride=stride, eta=eta, generator=gens,
+                         chunk=chunk or model.config.chunk, autocast=autocast, progress=progress)
+    out = from_network(x, scale).cpu().numpy().astype(np.float32)
+    return list(out)
+
+
+def generate(
+    conditions: Sequence[np.ndarray],
+    n_out: int | Sequence[int],
+    *,
+    model: str | Path | Loaded | None = None,
+    steps: int | None = None,
+    stride: int = 4,
+    eta: float = 0.0,
+    seed: int = 0,
+    device: str | None = None,
+    point_budget: int | None = None,
+    chunk: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[np.ndarray]:
+    """Polycube clouds for ``conditions`` (each ``(N_i, 3)``, canonical frame).
+
+    Parameters
+    ----------
+    n_out : output points per request (one int for all, or one per request)
+    model : checkpoint path or loaded model (default: the shipped checkpoint)
+    steps : DDIM steps (default: stride 4 on CUDA, :data:`DEFAULT_STEPS_CPU` on a CPU)
+    stride : DDIM stride when ``steps`` is None on CUDA
+    eta : 0 = deterministic DDIM, 1 = DDPM-like ancestral noise
+    seed : request ``i`` uses generator seed ``seed * 1_000_003 + i``
+    point_budget : points (condition + output) per batch
+    progress : called with ``(batches done, batches)``
+
+    Returns
+    -------
+    list of ``(n_out_i, 6)`` float32 arrays: xyz and unit normals.
+    """
+    device = device or default_device()
+    loaded = load_model(model, device)
+    if loaded.model.parameters().__next__().device != torch.device(device):
+        loaded.model.to(device)
+    conds = [np.asarray(c, dtype=np.float32) for c in conditions]
+    for i, c in enumerate(conds):
+        if c.ndim != 2 or c.shape[1] != 3 or len(c) < 1 or not np.isfinite(c).all():
+            raise ValueError(f"condition {i}: expected a finite (N, 3) point array, got shape {c.shape}")
+    outs = [int(n_out)] * len(conds) if np.isscalar(n_out) else [int(n) for n in n_out]
+    if len(outs) != len(conds):
+        raise ValueError(f"{len(conds)} conditions but {len(outs)} output sizes")
+    if any(n < 1 for n in outs):
+        raise ValueError("every n_out must be >= 1")
+    if steps is None and torch.device(device).type == "cpu":
+        steps = DEFAULT_STEPS_CPU
+    batches = plan_batches([len(c) for c in conds], outs, point_budget or DEFAULT_POINT_BUDGET)
+    results: list[np.ndarray | None] = [None] * len(conds)
+    for b, idx in enumerate(batches):
+        clouds = _sample_batch(loaded, [conds[i] for i in idx], outs[idx[0]], [seed * 1_000_003 + i for i in idx],
+                               steps=steps, stride=stride, eta=eta, device=device, chunk=chunk, progress=None)
+        for i, cloud in zip(idx, clouds):
+            results[i] = cloud
+        if progress is not None:
+            progress(b + 1, len(batches))
+    return results  # type: ignore[return-value]
+
+
+class ModelSource:
+    """The learned polycube source for :func:`polycubenet.pipeline.mesh_part`.
+
+    ``source(sample, V, F, config)`` generates ``config.n_polycube`` points conditioned on the
+    part's sample and returns a :class:`PolycubeCloud` with ``meta["provenance"] == "learned"``.
+    """
+
+    def __init__(self, model: str | Path | Loaded | None = None, steps: int | None = None, seed: int = 0,
+                 device: str | None = None):
+        self.model, self.steps, self.seed, self.device = model, steps, seed, device
+
+    def __call__(self, sample, V, F, config) -> PolycubeCloud:
+        loaded = load_model(self.model, self.device)
+        t0 = time.perf_counter()
+        (cloud,) = generate([sample.points], config.n_polycube, model=loaded, steps=self.steps,
+                            seed=self.seed + config.seed, device=self.device)
+        meta = {
+            "provenance": "learned",
+            "checkpoint": str(loaded.path.name if loaded.path else "memory"),
+            "steps": self.steps if self.steps is not None else (DEFAULT_STEPS_CPU if (self.device or default_device()) == "cpu" else "stride4"),
+            "seconds": round(time.perf_counter() - t0, 3),
+        }
+        return PolycubeCloud(cloud[:, :3].astype(np.float64), cloud[:, 3:].astype(np.float64), meta=meta)

@@ -1,0 +1,108 @@
+"""Model configurations: frozen dataclasses, stored in every checkpoint.
+
+A :class:`StreamConfig` describes one two-stream stack (``blocks`` TS blocks, each
+with ``layers`` latent self-attention layers); :class:`ModelConfig` pairs the
+condition encoder with the denoiser and fixes how clouds are scaled into the
+network.  ``PRESETS`` holds the named ones:
+
+* ``paper`` -- the paper's sizes (denoiser 6 x 4, d = 256, 256 latents, 8 heads;
+  encoder 6 x 6, 64 tokens, 8 heads);
+* ``cpu`` -- sized to train on a few CPU cores in hours (the shipped checkpoint);
+* ``tiny`` -- for tests.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+
+@dataclasses.dataclass(frozen=True)
+class StreamConfig:
+    """One stack of two-stream blocks.
+
+    Attributes
+    ----------
+    blocks : number of TS blocks (read -> ``layers`` x self-attention -> write)
+    layers : latent self-attention layers per block (the paper's H)
+    dim : width of both streams
+    latents : learned latent tokens of this stack
+    heads : attention heads
+    mlp_ratio : hidden width of the feed-forward layers, in multiples of ``dim``
+    """
+
+    blocks: int
+    layers: int
+    dim: int
+    latents: int
+    heads: int
+    mlp_ratio: float = 4.0
+
+    def __post_init__(self):
+        for name in ("blocks", "layers", "dim", "latents", "heads"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"StreamConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if self.dim % self.heads:
+            raise ValueError(f"StreamConfig.dim ({self.dim}) must be a multiple of heads ({self.heads})")
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    """The whole network.
+
+    Attributes
+    ----------
+    encoder : the condition encoder e(g); its latents are the condition tokens z_c
+    denoiser : eps_theta(x_t, z_c, t); its latents are z_init, joined by z_c and a time token
+    point_dim : channels of a generated point (xyz + normal)
+    cond_dim : channels of a condition point (xyz)
+    fourier : frequencies of the Fourier features of positions (0 = linear embedding only)
+    xyz_scale : canonical-frame coordinates (diagonal 1, centred) are multiplied by this
+        before entering the network, so the data has roughly unit spread like the noise
+    chunk : points processed at once on the point side at inference (memory is linear in
+        the number of points with a constant set by this)
+    """
+
+    encoder: StreamConfig
+    denoiser: StreamConfig
+    point_dim: int = 6
+    cond_dim: int = 3
+    fourier: int = 8
+    xyz_scale: float = 2.0
+    chunk: int = 32768
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ModelConfig":
+        d = dict(d)
+        d["encoder"] = StreamConfig(**d["encoder"])
+        d["denoiser"] = StreamConfig(**d["denoiser"])
+        return cls(**d)
+
+
+PRESETS: dict[str, ModelConfig] = {
+    "paper": ModelConfig(
+        encoder=StreamConfig(blocks=6, layers=6, dim=256, latents=64, heads=8),
+        denoiser=StreamConfig(blocks=6, layers=4, dim=256, latents=256, heads=8),
+    ),
+    # sized for a 2-core CPU: the point side (FF, read/write projections) dominates the cost,
+    # so the width is small; the latent side is where the capacity is
+    "cpu": ModelConfig(
+        encoder=StreamConfig(blocks=2, layers=2, dim=96, latents=64, heads=4, mlp_ratio=2.0),
+        denoiser=StreamConfig(blocks=3, layers=3, dim=96, latents=64, heads=4, mlp_ratio=2.0),
+    ),
+    "tiny": ModelConfig(
+        encoder=StreamConfig(blocks=1, layers=1, dim=32, latents=8, heads=2, mlp_ratio=2.0),
+        denoiser=StreamConfig(blocks=1, layers=1, dim=32, latents=8, heads=2, mlp_ratio=2.0),
+        fourier=4,
+    ),
+}
+
+
+def preset(name: str) -> ModelConfig:
+    """The named preset (``paper``, ``cpu``, ``tiny``)."""
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise ValueError(f"unknown model preset {name!r}; choose from {sorted(PRESETS)}") from None

@@ -1,0 +1,229 @@
+"""Gaussian diffusion over polycube clouds: a plain class (no parameters, not an nn.Module).
+
+T = 1024 steps, epsilon prediction.  Training uses the paper's hybrid loss: for each
+iteration ``w ~ U[0.4, 0.8)`` and ``L = w * L2 + (1 - w) * L1`` on the noise
+(``loss="l2"`` gives the plain DDPM objective, for comparison).  Sampling is DDIM over
+precomputed ``(t, t_prev)`` pairs, stride 4 by default; ``eta`` interpolates between
+deterministic DDIM (0) and DDPM's ancestral sampling (1, with stride 1 it *is* DDPM).
+
+Clouds enter the network as ``[xyz * xyz_scale, normal]`` (:func:`to_network`) and
+leave through :func:`from_network` (normals renormalised).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import numpy as np
+import torch
+
+
+def to_network(points: torch.Tensor, normals: torch.Tensor | None, xyz_scale: float) -> torch.Tensor:
+    """``[xyz * scale, normals]`` (or only the scaled xyz when ``normals`` is None)."""
+    x = points * xyz_scale
+    return x if normals is None else torch.cat([x, normals], dim=-1)
+
+
+def from_network(x: torch.Tensor, xyz_scale: float) -> torch.Tensor:
+    """Inverse of :func:`to_network` for a generated cloud: xyz unscaled, normals unit length."""
+    p = x[..., :3] / xyz_scale
+    n = x[..., 3:6]
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+    return torch.cat([p, n], dim=-1)
+
+
+def _cosine_alpha_bar(T: int, s: float = 0.008) -> np.ndarray:
+    t = np.arange(T + 1, dtype=np.float64) / T
+    f = np.cos((t + s) / (1 + s) * math.pi / 2) ** 2
+    betas = np.clip(1 - f[1:] / f[:-1], 0, 0.999)
+    return np.cumprod(1 - betas)
+
+
+class Diffusion:
+    """Forward process, hybrid loss and DDIM / DDPM sampling.
+
+    Parameters
+    ----------
+    T : number of diffusion steps
+    schedule : ``"cosine"`` (default) or ``"linear"`` (betas from 1e-4 to 0.02 scaled to T)
+    """
+
+    def __init__(self, T: int = 1024, schedule: str = "cosine"):
+        if schedule == "cosine":
+            ab = _cosine_alpha_bar(T)
+        elif schedule == "linear":
+            scale = 1000.0 / T
+            betas = np.linspace(scale * 1e-4, scale * 0.02, T, dtype=np.float64)
+            ab = np.cumprod(1 - betas)
+        else:
+            raise ValueError(f"unknown noise schedule {schedule!r} (cosine, linear)")
+        self.T = T
+        self.schedule = schedule
+        self.alpha_bar = ab  # float64, alpha_bar[t] for t = 0..T-1
+        self.betas = 1 - ab / np.concatenate([[1.0], ab[:-1]])
+
+    def to_dict(self) -> dict:
+        return {"T": self.T, "schedule": self.schedule}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Diffusion":
+        return cls(T=int(d["T"]), schedule=d["schedule"])
+
+    # ------------------------------------------------------------------ training
+    def _ab(self, t: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+        ab = torch.as_tensor(self.alpha_bar, device=like.device)[t].to(like.dtype)
+        return ab.view(-1, *([1] * (like.dim() - 1)))
+
+    def q_sample(self, x0: torch.Tensor, t: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """x_t = sqrt(ab_t) x0 + sqrt(1 - ab_t) noise."""
+        ab = self._ab(t, x0)
+        return ab.sqrt() * x0 + (1 - ab).sqrt() * noise
+
+    def training_loss(
+        self,
+        model: Callable,
+        x0: torch.Tensor,
+        cond: torch.Tensor,
+        *,
+        loss: str = "hybrid",
+        generator: torch.Generator | None = None,
+        autocast: Callable | None = None,
+    ) -> tuple[torch.Tensor, dict]:
+        """One batch: random t and noise, predict the noise, the hybrid (or l2) loss.
+
+        Returns ``(loss, stats)`` where ``stats`` holds the float values of the L2 and L1
+        terms and the weight used.
+        """
+        B = x0.shape[0]
+        dev = x0.device
+        t = torch.randint(0, self.T, (B,), device=dev, generator=generator)
+        noise = torch.randn(x0.shape, device=dev, dtype=x0.dtype, generator=generator)
+        x_t = self.q_sample(x0, t, noise)
+        if autocast is not None:
+            with autocast():
+                eps = model(x_t, t, cond)
+        else:
+            eps = model(x_t, t, cond)
+        err = eps.float() - noise.float()
+        l2 = err.pow(2).mean()
+        l1 = err.abs().mean()
+        if loss == "hybrid":
+            w = float(0.4 + 0.4 * torch.rand((), generator=generator, device=dev).item())
+        elif loss == "l2":
+            w = 1.0
+        else:
+            raise ValueError(f"unknown loss {loss!r} (hybrid, l2)")
+        total = w * l2 + (1 - w) * l1
+        return total, {"l2": float(l2.detach()), "l1": float(l1.detach()), "w": w}
+
+    # ------------------------------------------------------------------ sampling
+    def timestep_pairs(self, steps: int | None = None, stride: int = 4) -> list[tuple[int, int]]:
+        """``(t, t_prev)`` pairs from T-1 down to 0 (``t_prev = -1`` means "x_0").
+
+        ``steps`` (when given) spaces that many timesteps evenly; otherwise every
+        ``stride``-th timestep is used (stride 4 -> 256 network evaluations at T = 1024).
+        """
+        if steps is not None:
+            if not 1 <= steps <= self.T:
+                raise ValueError(f"steps must be in 1..{self.T}, got {steps}")
+            ts = np.unique(np.round(np.linspace(0, self.T - 1, steps)).astype(int))
+        else:
+            if stride < 1:
+                raise ValueError(f"stride must be >= 1, got {stride}")
+            ts = np.arange(self.T - 1, -1, -stride)[::-1]
+        ts = ts[::-1]
+        prev = list(ts[1:]) + [-1]
+        return [(int(a), int(b)) for a, b in zip(ts, prev)]
+
+    def ddim_step(self, x_t: torch.Tensor, eps: torch.Tensor, t: int, t_prev: int, eta: float,
+                  noise: torch.Tensor | None, clip: float | None = None) -> torch.Tensor:
+        """One DDIM update from t to t_prev (generalised: eta = 1 is the DDPM posterior).
+
+        ``clip`` bounds the predicted x_0 (network units) and re-derives the noise from
+        it: near t = T the division by sqrt(alpha_bar) would otherwise amplify errors.
+        """
+        ab = float(self.alpha_bar[t])
+        ab_prev = float(self.alpha_bar[t_prev]) if t_prev >= 0 else 1.0
+        x0 = (x_t - math.sqrt(1 - ab) * eps) / math.sqrt(ab)
+        if clip is not None:
+            x0 = x0.clamp(-clip, clip)
+            eps = (x_t - math.sqrt(ab) * x0) / math.sqrt(1 - ab)
+        sigma = eta * math.sqrt(max((1 - ab_prev) / (1 - ab) * (1 - ab / ab_prev), 0.0))
+        dir_coef = math.sqrt(max(1 - ab_prev - sigma**2, 0.0))
+        x = math.sqrt(ab_prev) * x0 + dir_coef * eps
+        if sigma > 0 and noise is not None:
+            x = x + sigma * noise
+        return x
+
+    def ddpm_step(self, x_t: torch.Tensor, eps: torch.Tensor, t: int, noise: torch.Tensor | None) -> torch.Tensor:
+        """Ancestral DDPM step t -> t-1 from the posterior q(x_{t-1} | x_t, x_0) (Ho et al.)."""
+        ab = float(self.alpha_bar[t])
+        ab_prev = float(self.alpha_bar[t - 1]) if t > 0 else 1.0
+        beta = 1 - ab / ab_prev
+        x0 = (x_t - math.sqrt(1 - ab) * eps) / math.sqrt(ab)
+        c0 = math.sqrt(ab_prev) * beta / (1 - ab)
+        ct = math.sqrt(1 - beta) * (1 - ab_prev) / (1 - ab)
+        mean = c0 * x0 + ct * x_t
+        var = beta * (1 - ab_prev) / (1 - ab)
+        if t > 0 and noise is not None:
+            return mean + math.sqrt(var) * noise
+        return mean
+
+    @torch.no_grad()
+    def sample(
+        self,
+        model,
+        cond: torch.Tensor,
+        n_out: int,
+        *,
+        steps: int | None = None,
+        stride: int = 4,
+        eta: float = 0.0,
+        generator: torch.Generator | list | None = None,
+        chunk: int | None = None,
+        clip: float | None = 1.5,
+        autocast: Callable | None = None,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> torch.Tensor:
+        """Generate ``(B, n_out, point_dim)`` clouds in network units for conditions ``cond``.
+
+        ``model`` has ``encode(cond, chunk)`` and ``denoise(x_t, t, z_c, chunk)``.  All
+        randomness comes from ``generator`` (on the device of ``cond``), so a seed
+        reproduces the output; a list of generators gives each batch element its own
+        stream (its result then does not depend on the rest of the batch).
+        """
+        B = cond.shape[0]
+        dev = cond.device
+        dim = model.config.point_dim
+        x = _randn((B, n_out, dim), dev, generator)
+        ctx = autocast() if autocast is not None else _null()
+        with ctx:
+            z_c = model.encode(cond, chunk=chunk)
+        pairs = self.timestep_pairs(steps, stride)
+        for i, (t, t_prev) in enumerate(pairs):
+            tt = torch.full((B,), t, device=dev, dtype=torch.long)
+            with (autocast() if autocast is not None else _null()):
+                eps = model.denoise(x, tt, z_c, chunk=chunk)
+            eps = eps.float()
+            noise = _randn(x.shape, dev, generator) if eta > 0 and t_prev >= 0 else None
+            x = self.ddim_step(x, eps, t, t_prev, eta, noise, clip)
+            if progress is not None:
+                progress(i + 1, len(pairs))
+        return x
+
+
+def _randn(shape, device, generator) -> torch.Tensor:
+    if isinstance(generator, (list, tuple)):
+        if len(generator) != shape[0]:
+            raise ValueError(f"{len(generator)} generators for a batch of {shape[0]}")
+        return torch.cat([torch.randn((1, *shape[1:]), device=device, generator=g) for g in generator])
+    return torch.randn(shape, device=device, generator=generator)
+
+
+class _null:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False

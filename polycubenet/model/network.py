@@ -1,0 +1,272 @@
+"""The dual-latent two-stream transformer (paper, "Dual-Latent diffusion model").
+
+A two-stream block ``TS(x, z)`` reads the point stream into the latent stream
+(latents cross-attend to points), runs ``H`` self-attention layers on the latents
+and writes back (points cross-attend to latents); every sub-layer is pre-norm and
+residual.  Self-attention only ever runs over the fixed set of latents, so cost and
+memory are linear in the number of points.
+
+* :class:`ConditionEncoder` e(g): TS blocks over the part's cloud g -> condition tokens z_c.
+* :class:`Denoiser` eps_theta(x_t, z_c, t): TS blocks over the noisy polycube cloud with
+  latents ``[z_c, z_init, embed(t)]``.
+* :class:`PolycubeNet` holds both.
+
+Large clouds are processed in chunks of ``chunk`` points: the read attention uses an
+online (streaming) softmax over point chunks and the write / feed-forward layers run
+chunk by chunk, so a million output points fit in a few GB.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .config import ModelConfig, StreamConfig
+
+
+class Attention(nn.Module):
+    """Multi-head attention used for self attention (``context=None``) and cross attention.
+
+    ``forward(x, context, chunk)``: queries from ``x`` (B, Lq, dim), keys and values from
+    ``context`` (B, Lk, dim).  With ``chunk`` set and ``Lk > chunk``, keys and values are
+    consumed ``chunk`` at a time with a streaming softmax (exact, memory O(Lq + chunk)).
+    """
+
+    def __init__(self, dim: int, heads: int):
+        super().__init__()
+        self.heads = heads
+        self.q = nn.Linear(dim, dim)
+        self.kv = nn.Linear(dim, 2 * dim)
+        self.out = nn.Linear(dim, dim)
+
+    def _split(self, t: torch.Tensor) -> torch.Tensor:
+        B, L, D = t.shape
+        return t.view(B, L, self.heads, D // self.heads).transpose(1, 2)
+
+    def forward(self, x: torch.Tensor, context: torch.Tensor | None = None, chunk: int | None = None) -> torch.Tensor:
+        ctx = x if context is None else context
+        q = self._split(self.q(x))
+        if chunk is None or ctx.shape[1] <= chunk:
+            k, v = self.kv(ctx).chunk(2, dim=-1)
+            o = F.scaled_dot_product_attention(q, self._split(k), self._split(v))
+        else:
+            o = self._streaming(q, ctx, chunk)
+        B, H, L, Dh = o.shape
+        return self.out(o.transpose(1, 2).reshape(B, L, H * Dh))
+
+    def _streaming(self, q: torch.Tensor, ctx: torch.Tensor, chunk: int) -> torch.Tensor:
+        scale = 1.0 / math.sqrt(q.shape[-1])
+        m = torch.full(q.shape[:-1] + (1,), -torch.inf, device=q.device, dtype=torch.float32)
+        denom = torch.zeros_like(m)
+        acc = torch.zeros(q.shape, device=q.device, dtype=torch.float32)
+        for s in range(0, ctx.shape[1], chunk):
+            k, v = self.kv(ctx[:, s : s + chunk]).chunk(2, dim=-1)
+            k, v = self._split(k), self._split(v)
+            logits = (q @ k.transpose(-1, -2)).float() * scale
+            m_new = torch.maximum(m, logits.amax(dim=-1, keepdim=True))
+            p = torch.exp(logits - m_new)
+            corr = torch.exp(m - m_new)
+            denom = denom * corr + p.sum(dim=-1, keepdim=True)
+            acc = acc * corr + p @ v.float()
+            m = m_new
+        return (acc / denom).to(q.dtype)
+
+
+class FeedForward(nn.Module):
+    """Pre-norm residual MLP: ``x + W2 gelu(W1 norm(x))``."""
+
+    def __init__(self, dim: int, ratio: float):
+        super().__init__()
+        hidden = int(round(dim * ratio))
+        self.norm = nn.LayerNorm(dim)
+        self.net = nn.Sequential(nn.Linear(dim, hidden), nn.GELU(), nn.Linear(hidden, dim))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.net(self.norm(x))
+
+
+class LatentLayer(nn.Module):
+    """One transformer layer on the latents: pre-norm self attention + feed-forward."""
+
+    def __init__(self, dim: int, heads: int, ratio: float):
+        super().__init__()
+        self.norm = nn.LayerNorm(dim)
+        self.attn = Attention(dim, heads)
+        self.ff = FeedForward(dim, ratio)
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        z = z + self.attn(self.norm(z))
+        return self.ff(z)
+
+
+class _NormedContext:
+    """A point stream seen through a LayerNorm, normalised lazily chunk by chunk."""
+
+    def __init__(self, norm: nn.LayerNorm, x: torch.Tensor):
+        self.norm, self.x = norm, x
+        self.shape = x.shape
+
+    def __getitem__(self, idx):
+        return self.norm(self.x[idx])
+
+
+class TwoStreamBlock(nn.Module):
+    """``(x, z) -> (x', z')``: read (z attends to x), H latent layers, write (x attends to z)."""
+
+    def __init__(self, cfg: StreamConfig, write: bool = True):
+        super().__init__()
+        d = cfg.dim
+        self.read_norm_z = nn.LayerNorm(d)
+        self.read_norm_x = nn.LayerNorm(d)
+        self.read = Attention(d, cfg.heads)
+        self.read_ff = FeedForward(d, cfg.mlp_ratio)
+        self.layers = nn.ModuleList(LatentLayer(d, cfg.heads, cfg.mlp_ratio) for _ in range(cfg.layers))
+        self.has_write = write
+        if write:
+            self.write_norm_x = nn.LayerNorm(d)
+            self.write_norm_z = nn.LayerNorm(d)
+            self.write = Attention(d, cfg.heads)
+            self.write_ff = FeedForward(d, cfg.mlp_ratio)
+
+    def forward(self, x: torch.Tensor, z: torch.Tensor, chunk: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        big = chunk is not None and x.shape[1] > chunk
+        if big:
+            z = z + self.read(self.read_norm_z(z), _NormedContext(self.read_norm_x, x), chunk=chunk)
+        else:
+            z = z + self.read(self.read_norm_z(z), self.read_norm_x(x))
+        z = self.read_ff(z)
+        for layer in self.layers:
+            z = layer(z)
+        if not self.has_write:
+            return x, z
+        zn = self.write_norm_z(z)
+        if big:
+            out = torch.empty_like(x)
+            for s in range(0, x.shape[1], chunk):
+                xs = x[:, s : s + chunk]
+                xs = xs + self.write(self.write_norm_x(xs), zn)
+                out[:, s : s + chunk] = self.write_ff(xs)
+            return out, z
+        x = x + self.write(self.write_norm_x(x), zn)
+        return self.write_ff(x), z
+
+
+class PointEmbed(nn.Module):
+    """Point features: Fourier features of the first 3 channels (positions) + all channels, then linear."""
+
+    def __init__(self, in_dim: int, dim: int, fourier: int):
+        super().__init__()
+        self.fourier = fourier
+        self.register_buffer("freqs", (2.0 ** torch.arange(fourier)) * math.pi, persistent=False)
+        self.proj = nn.Linear(in_dim + 6 * fourier, dim)
+
+    def forward(self, p: torch.Tensor) -> torch.Tensor:
+        if self.fourier:
+            a = p[..., :3, None] * self.freqs  # (..., 3, F)
+            feats = torch.cat([p, a.sin().flatten(-2), a.cos().flatten(-2)], dim=-1)
+        else:
+            feats = p
+        return self.proj(feats)
+
+
+def timestep_embedding(t: torch.Tensor, dim: int, max_period: float = 10000.0) -> torch.Tensor:
+    """Sinusoidal embedding of integer timesteps ``t`` (B,) -> (B, dim)."""
+    half = dim // 2
+    freqs = torch.exp(-math.log(max_period) * torch.arange(half, device=t.device, dtype=torch.float32) / half)
+    a = t.float()[:, None] * freqs[None]
+    emb = torch.cat([a.cos(), a.sin()], dim=-1)
+    if dim % 2:
+        emb = F.pad(emb, (0, 1))
+    return emb
+
+
+class ConditionEncoder(nn.Module):
+    """e(g): TS blocks over the condition cloud g (B, N, 3) -> condition tokens (B, latents, dim)."""
+
+    def __init__(self, cfg: StreamConfig, in_dim: int, fourier: int):
+        super().__init__()
+        self.embed = PointEmbed(in_dim, cfg.dim, fourier)
+        self.latents = nn.Parameter(torch.randn(cfg.latents, cfg.dim) * 0.02)
+        # the point stream after the last block is never used: that block has no write
+        self.blocks = nn.ModuleList(TwoStreamBlock(cfg, write=i < cfg.blocks - 1) for i in range(cfg.blocks))
+        self.norm = nn.LayerNorm(cfg.dim)
+
+    def forward(self, g: torch.Tensor, chunk: int | None = None) -> torch.Tensor:
+        x = _embed_chunked(self.embed, g, chunk)
+        z = self.latents.unsqueeze(0).expand(g.shape[0], -1, -1)
+        for block in self.blocks:
+            x, z = block(x, z, chunk=chunk)
+        return self.norm(z)
+
+
+class Denoiser(nn.Module):
+    """eps_theta(x_t, z_c, t): TS blocks over x_t with latents ``[z_c, z_init, embed(t)]``."""
+
+    def __init__(self, cfg: StreamConfig, point_dim: int, cond_width: int, fourier: int):
+        super().__init__()
+        d = cfg.dim
+        self.embed = PointEmbed(point_dim, d, fourier)
+        self.latents = nn.Parameter(torch.randn(cfg.latents, d) * 0.02)
+        self.cond_proj = nn.Linear(cond_width, d)
+        self.time = nn.Sequential(nn.Linear(d, d), nn.SiLU(), nn.Linear(d, d))
+        self.blocks = nn.ModuleList(TwoStreamBlock(cfg) for _ in range(cfg.blocks))
+        self.out_norm = nn.LayerNorm(d)
+        self.out = nn.Linear(d, point_dim)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    def forward(self, x_t: torch.Tensor, t: torch.Tensor, z_c: torch.Tensor, chunk: int | None = None) -> torch.Tensor:
+        B = x_t.shape[0]
+        temb = self.time(timestep_embedding(t, self.latents.shape[1]).to(x_t.dtype))  # (B, d)
+        z = torch.cat([self.cond_proj(z_c), self.latents.unsqueeze(0).expand(B, -1, -1), temb[:, None]], dim=1)
+        x = _embed_chunked(self.embed, x_t, chunk, add=temb[:, None])
+        for block in self.blocks:
+            x, z = block(x, z, chunk=chunk)
+        if chunk is not None and x.shape[1] > chunk:
+            out = x_t.new_empty(x_t.shape)
+            for s in range(0, x.shape[1], chunk):
+                out[:, s : s + chunk] = self.out(self.out_norm(x[:, s : s + chunk]))
+            return out
+        return self.out(self.out_norm(x))
+
+
+def _embed_chunked(embed: PointEmbed, p: torch.Tensor, chunk: int | None, add: torch.Tensor | None = None) -> torch.Tensor:
+    if chunk is None or p.shape[1] <= chunk:
+        x = embed(p)
+        return x if add is None else x + add
+    first = embed(p[:, :1])
+    out = first.new_empty(p.shape[0], p.shape[1], first.shape[-1])
+    for s in range(0, p.shape[1], chunk):
+        xs = embed(p[:, s : s + chunk])
+        out[:, s : s + chunk] = xs if add is None else xs + add
+    return out
+
+
+class PolycubeNet(nn.Module):
+    """The conditional noise predictor: ``forward(x_t, t, cond) = eps_theta(x_t, e(cond), t)``.
+
+    Tensors are in network units: positions multiplied by ``config.xyz_scale``
+    (see :mod:`polycubenet.model.diffusion` for the conversion of clouds).
+    """
+
+    def __init__(self, config: ModelConfig):
+        super().__init__()
+        self.config = config
+        self.encoder = ConditionEncoder(config.encoder, config.cond_dim, config.fourier)
+        self.denoiser = Denoiser(config.denoiser, config.point_dim, config.encoder.dim, config.fourier)
+
+    def encode(self, cond: torch.Tensor, chunk: int | None = None) -> torch.Tensor:
+        return self.encoder(cond, chunk=chunk)
+
+    def denoise(self, x_t: torch.Tensor, t: torch.Tensor, z_c: torch.Tensor, chunk: int | None = None) -> torch.Tensor:
+        return self.denoiser(x_t, t, z_c, chunk=chunk)
+
+    def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        return self.denoise(x_t, t, self.encode(cond))
+
+
+def count_parameters(module: nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())

@@ -1,0 +1,295 @@
+"""Train PolycubeNet on synthetic shards: one command, resumable, CPU or (multi-)GPU.
+
+    python -m polycubenet.train --data DIR --run RUN --preset cpu --steps 20000
+    torchrun --nproc_per_node 4 -m polycubenet.train --data DIR --run RUN --preset paper ...
+
+* Data: the shards of :mod:`polycubenet.synth` (condition = the shape's samples, target
+  = the polycube's samples with axis normals), both subsampled at random to the
+  training resolution every time a pair is drawn.  Augmentation keeps the pair
+  consistent: the same random anisotropic scaling of shape and polycube (axis normals
+  stay axis normals), re-normalised to diagonal 1, and a small jitter on the condition.
+* AdamW, cosine decay with linear warm-up, gradient clipping, EMA weights, bf16
+  autocast on CUDA, the hybrid loss of :class:`~polycubenet.model.Diffusion`.
+* ``RUN/last.pt`` is written atomically every ``--ckpt-every`` steps and at the end;
+  ``--resume`` (the default when ``RUN/last.pt`` exists) continues from it, so a kill
+  costs at most ``--ckpt-every`` steps.  ``RUN/log.jsonl`` gets one line per
+  ``--log-every`` steps (loss, lr, held-out loss, seconds).
+* Under ``torchrun`` (``WORLD_SIZE > 1``) it runs DDP (NCCL on GPUs, gloo on CPU); each
+  rank draws its own pairs and only rank 0 writes.
+
+A pair index drawn at step ``s`` by rank ``r`` comes from ``default_rng([seed, s, r])``,
+so a resumed run draws exactly what the uninterrupted run would have drawn.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import dataclasses
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .model import Diffusion, PolycubeNet, count_parameters, preset, to_network
+from .model.checkpoint import save_checkpoint
+from .model.config import ModelConfig
+from .synth.shards import list_shards, load_shard
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    preset: str = "cpu"
+    steps: int = 20000
+    batch: int = 16  # global batch (split over ranks)
+    points: int = 512  # training resolution of condition and target (paper: 4096)
+    lr: float = 1e-4
+    weight_decay: float = 0.01
+    warmup: int = 500
+    min_lr_ratio: float = 0.05
+    clip: float = 1.0
+    ema: float = 0.999
+    loss: str = "hybrid"
+    seed: int = 0
+    scale_aug: float = 0.15  # anisotropic scale factors in [1 - a, 1 + a]
+    jitter: float = 0.002  # condition jitter (diagonal units)
+    eval_pairs: int = 32
+    ckpt_every: int = 200
+    log_every: int = 20
+    threads: int = 0  # torch CPU threads (0: leave torch's default)
+
+
+class PairData:
+    """All pairs of a shard folder in memory (float32), with per-draw subsampling."""
+
+    def __init__(self, directory: str | Path, limit: int | None = None):
+        shards = list_shards(directory)
+        if not shards:
+            raise FileNotFoundError(f"no shard-*.npz in {directory} (make them with python -m polycubenet.synth)")
+        cond, tp, tn, genus, seeds = [], [], [], [], []
+        n = 0
+        for path in shards:
+            s = load_shard(path)
+            cond.append(s["cond_points"])
+            tp.append(s["target_points"])
+            tn.append(s["target_normals"])
+            genus.append(s["genus"])
+            seeds.append(s["seeds"])
+            n += len(s)
+            if limit is not None and n >= limit:
+                break
+        self.cond = np.concatenate(cond)[:limit]
+        self.target_points = np.concatenate(tp)[:limit]
+        self.target_normals = np.concatenate(tn)[:limit]
+        self.genus = np.concatenate(genus)[:limit]
+        self.seeds = np.concatenate(seeds)[:limit]
+        self.directory = Path(directory)
+
+    def __len__(self) -> int:
+        return len(self.cond)
+
+    def batch(self, idx: np.ndarray, points: int, rng: np.random.Generator, cfg: TrainConfig | None = None
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(x0, cond)`` in network units for pairs ``idx``; augmentation when ``cfg`` is given."""
+        B = len(idx)
+        N, M = self.cond.shape[1], self.target_points.shape[1]
+        ci = np.stack([rng.choice(N, size=points, replace=points > N) for _ in range(B)])
+        ti = np.stack([rng.choice(M, size=points, replace=points > M) for _ in range(B)])
+        g = np.take_along_axis(self.cond[idx], ci[..., None], axis=1).astype(np.float64)
+        p = np.take_along_axis(self.target_points[idx], ti[..., None], axis=1).astype(np.float64)
+        nrm = np.take_along_axis(self.target_normals[idx], ti[..., None], axis=1).astype(np.float32)
+        if cfg is not None and cfg.scale_aug > 0:
+            s = rng.uniform(1 - cfg.scale_aug, 1 + cfg.scale_aug, size=(B, 1, 3))
+            g, p = g * s, p * s
+            # back to diagonal 1 (as frame.canonicalize would) using the full condition cloud
+            full = self.cond[idx].astype(np.float64) * s
+            diag = np.linalg.norm(full.max(axis=1) - full.min(axis=1), axis=-1)[:, None, None]
+            g, p = g / diag, p / diag
+        if cfg is not None and cfg.jitter > 0:
+            g = g + rng.normal(scale=cfg.jitter, size=g.shape)
+        return (torch.from_numpy(np.concatenate([p.astype(np.float32), nrm], axis=-1)),
+                torch.from_numpy(g.astype(np.float32)))
+
+
+def lr_at(step: int, cfg: TrainConfig) -> float:
+    """Linear warm-up then cosine decay to ``min_lr_ratio * lr``."""
+    if step < cfg.warmup:
+        return cfg.lr * (step + 1) / cfg.warmup
+    frac = min(1.0, (step - cfg.warmup) / max(1, cfg.steps - cfg.warmup))
+    return cfg.lr * (cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * frac)))
+
+
+@torch.no_grad()
+def ema_update(ema: torch.nn.Module, model: torch.nn.Module, decay: float) -> None:
+    for pe, pm in zip(ema.parameters(), model.parameters()):
+        pe.mul_(decay).add_(pm.detach(), alpha=1 - decay)
+
+
+@torch.no_grad()
+def heldout_loss(model, diffusion: Diffusion, x0: torch.Tensor, cond: torch.Tensor, seed: int = 0) -> float:
+    """Mean L2 noise-prediction error at fixed timesteps and noise (comparable across steps)."""
+    g = torch.Generator(device=x0.device).manual_seed(seed)
+    B = x0.shape[0]
+    t = torch.linspace(0, diffusion.T - 1, B, device=x0.device).long()
+    noise = torch.randn(x0.shape, generator=g, device=x0.device)
+    eps = model(diffusion.q_sample(x0, t, noise), t, cond)
+    return float((eps.float() - noise).pow(2).mean())
+
+
+def _dist_env() -> tuple[int, int, int]:
+    return int(os.environ.get("RANK", 0)), int(os.environ.get("WORLD_SIZE", 1)), int(os.environ.get("LOCAL_RANK", 0))
+
+
+def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_dir: str | Path | None = None,
+          resume: bool = True, device: str | None = None, progress: bool = True, max_seconds: float | None = None,
+          model_config: ModelConfig | None = None) -> dict:
+    """Train (or resume) into ``run_dir``; returns the final metrics dict.
+
+    ``max_seconds`` stops cleanly (checkpoint written) after that much wall time, so a
+    session-limited job can be continued later with the same command.
+    """
+    rank, world, local = _dist_env()
+    if device is None:
+        device = f"cuda:{local}" if torch.cuda.is_available() else "cpu"
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        torch.cuda.set_device(dev)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    ddp = world > 1
+    if ddp:
+        import torch.distributed as dist
+
+        dist.init_process_group("nccl" if dev.type == "cuda" else "gloo")
+    run = Path(run_dir)
+    if rank == 0:
+        run.mkdir(parents=True, exist_ok=True)
+    mcfg = model_config or preset(cfg.preset)
+    diffusion = Diffusion()
+    torch.manual_seed(cfg.seed)
+    model = PolycubeNet(mcfg).to(dev)
+    ema = copy.deepcopy(model).eval()
+    for p in ema.parameters():
+        p.requires_grad_(False)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    step = 0
+    ckpt = run / "last.pt"
+    if resume and ckpt.exists():
+        s = torch.load(ckpt, map_location="cpu", weights_only=False)
+        if ModelConfig.from_dict(s["model_config"]) != mcfg:
+            raise ValueError(f"{ckpt} was trained with another model config; use a new --run folder")
+        model.load_state_dict(s["model"])
+        ema.load_state_dict(s["ema"])
+        opt.load_state_dict(s["optimizer"])
+        step = int(s["step"])
+    data = PairData(data_dir)
+    heldout = None
+    if eval_dir is not None and rank == 0:
+        ev = PairData(eval_dir, limit=cfg.eval_pairs)
+        heldout = ev.batch(np.arange(len(ev)), cfg.points, np.random.default_rng(12345))
+        heldout = (heldout[0].to(dev), heldout[1].to(dev))
+    net = model
+    if ddp:
+        from torch.nn.parallel import DistributedDataParallel
+
+        net = DistributedDataParallel(model, device_ids=[dev.index] if dev.type == "cuda" else None)
+    autocast = (lambda: torch.autocast("cuda", dtype=torch.bfloat16)) if dev.type == "cuda" else None
+    per_rank = max(1, cfg.batch // world)
+    scale = mcfg.xyz_scale
+    if rank == 0:
+        print(f"[train] {count_parameters(model):,} parameters, preset {cfg.preset}, {len(data)} pairs, "
+              f"{world} process(es) on {dev}, batch {per_rank * world} x {cfg.points} points, from step {step}",
+              flush=True)
+    t_start = time.time()
+    window: list[float] = []
+    metrics: dict = {}
+    log_path = run / "log.jsonl"
+    bar = None
+    if progress and rank == 0 and sys.stderr.isatty():
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.steps, initial=step, desc="train", unit="step")
+    while step < cfg.steps:
+        rng = np.random.default_rng([cfg.seed, step, rank])
+        idx = rng.integers(0, len(data), size=per_rank)
+        x0, cond = data.batch(idx, cfg.points, rng, cfg)
+        x0 = to_network(x0[..., :3].to(dev), x0[..., 3:].to(dev), scale)
+        cond = to_network(cond.to(dev), None, scale)
+        for group in opt.param_groups:
+            group["lr"] = lr_at(step, cfg)
+        gen = torch.Generator(device=dev).manual_seed(int(rng.integers(2**62)))
+        model.train()
+        loss, stats = diffusion.training_loss(net, x0, cond, loss=cfg.loss, generator=gen, autocast=autocast)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        gnorm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.clip))
+        opt.step()
+        ema_update(ema, model, cfg.ema if step >= cfg.warmup else 0.0 if step == 0 else min(cfg.ema, 0.99))
+        step += 1
+        window.append(stats["l2"])
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(l2=f"{np.mean(window[-20:]):.4f}")
+        last = step == cfg.steps
+        out_of_time = max_seconds is not None and time.time() - t_start > max_seconds
+        if ddp:  # every rank stops together when rank 0 runs out of time
+            flag = torch.tensor([int(out_of_time)], device=dev)
+            torch.distributed.broadcast(flag, 0)
+            out_of_time = bool(flag.item())
+        if rank == 0 and (step % cfg.log_every == 0 or last or out_of_time):
+            metrics = {"step": step, "loss_l2": float(np.mean(window)), "lr": lr_at(step - 1, cfg), "grad_norm": gnorm,
+                       "seconds": round(time.time() - t_start, 1), "loss": cfg.loss}
+            window = []
+            if heldout is not None:
+                ema.eval()
+                metrics["heldout_l2"] = heldout_loss(ema, diffusion, *heldout)
+            with open(log_path, "a") as fh:
+                fh.write(json.dumps(metrics) + "\n")
+            if bar is None and progress:
+                print(f"[train] step {step}/{cfg.steps} " + " ".join(
+                    f"{k}={v:.4g}" for k, v in metrics.items() if isinstance(v, float)), flush=True)
+        if rank == 0 and (step % cfg.ckpt_every == 0 or last or out_of_time):
+            save_checkpoint(ckpt, {
+                "kind": "train", "model_config": mcfg.to_dict(), "diffusion": diffusion.to_dict(),
+                "train_config": dataclasses.asdict(cfg), "data": str(data.directory), "pairs": len(data),
+                "model": model.state_dict(), "ema": ema.state_dict(), "optimizer": opt.state_dict(),
+                "step": step, "metrics": metrics, "world_size": world, "device": str(dev),
+            })
+        if out_of_time:
+            break
+    if bar is not None:
+        bar.close()
+    if ddp:
+        torch.distributed.barrier()
+        torch.distributed.destroy_process_group()
+    return {"step": step, **metrics}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m polycubenet.train", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", required=True, help="shard folder (python -m polycubenet.synth)")
+    ap.add_argument("--run", required=True, help="run folder (last.pt, log.jsonl)")
+    ap.add_argument("--eval-data", help="held-out shard folder for the held-out loss")
+    ap.add_argument("--no-resume", action="store_true", help="start over even if RUN/last.pt exists")
+    ap.add_argument("--device", help="cpu, cuda, cuda:1 (default: cuda:LOCAL_RANK when available)")
+    ap.add_argument("--max-minutes", type=float, help="stop cleanly (checkpoint written) after this long")
+    ap.add_argument("--no-progress", action="store_true")
+    for f in dataclasses.fields(TrainConfig):
+        ap.add_argument("--" + f.name.replace("_", "-"), type=type(f.default), default=f.default)
+    args = ap.parse_args(argv)
+    cfg = TrainConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)})
+    out = train(args.data, args.run, cfg, eval_dir=args.eval_data, resume=not args.no_resume, device=args.device,
+                progress=not args.no_progress, max_seconds=None if args.max_minutes is None else 60 * args.max_minutes)
+    if _dist_env()[0] == 0:
+        print(json.dumps(out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
