@@ -11,8 +11,21 @@ in the part's canonical frame:
 
 * :class:`OracleSource` -- the ground-truth polycube of a synthetic pair, sampled and
   corrupted with noise and outliers (proves every stage before a model exists);
-* the learned model (``polycubenet.inference``) and the classical construction
-  (``polycubenet.classical``) plug in the same way.
+* the learned model (``polycubenet.inference``) plugs in the same way;
+* the classical construction (:class:`polycubenet.classical.ClassicalSource`) builds the
+  polycube from the surface itself; its cloud carries the exact map polycube -> part
+  (``cloud.correspondence()``), which then replaces registration.
+
+**Hybrid policy** (``PipelineConfig.polycube``):
+
+* ``"learned"`` -- the injected source alone (a failed polycube is final for the part);
+* ``"classical"`` -- the classical polycube alone (the injected source is not called);
+* ``"auto"`` -- the injected source first; when it raises
+  :class:`~polycubenet.errors.PolycubeError` or its polycube fails validation at
+  extraction (not a closed manifold solid, genus different from the part's, cloud far
+  from the polycube, surface not covered), the classical polycube is built instead.
+  ``PartResult.provenance`` says which one was used and ``PartResult.fallback_reason``
+  why the first one was rejected; both go to the manifest row and ``quality.json``.
 
 Errors: a :class:`~polycubenet.errors.PartError` (bad input) or
 :class:`~polycubenet.errors.PolycubeError` (the polycube failed validation) propagates
@@ -30,6 +43,7 @@ from typing import Callable, Protocol
 import numpy as np
 
 from .atomic import write_json
+from .classical import ClassicalConfig, ClassicalSource
 from .cleanup import remove_outliers
 from .data import HexMesh, Part, Polycube, PolycubeCloud, SurfaceSample
 from .errors import PartError, PolycubeError
@@ -55,6 +69,8 @@ class PipelineConfig:
     target_hexes : approximate hex count (``target_size`` wins when set)
     target_size : element edge length relative to the part's bounding-box diagonal
     seed : every random choice of the run derives from it
+    polycube : ``"learned"``, ``"classical"`` or ``"auto"`` (see the module docstring);
+        ``"learned"`` by default so an injected source is used exactly as given
     """
 
     n_sample: int = 4096
@@ -65,6 +81,12 @@ class PipelineConfig:
     seed: int = 0
     extract: ExtractConfig = ExtractConfig()
     pullback: PullbackConfig = PullbackConfig()
+    polycube: str = "learned"
+    classical: ClassicalConfig = ClassicalConfig()
+
+
+#: the values of ``PipelineConfig.polycube`` (and of the command-line ``--polycube``)
+POLYCUBE_MODES = ("auto", "learned", "classical")
 
 
 class PolycubeSource(Protocol):
@@ -116,6 +138,8 @@ class PartResult:
     transform: Transform | None = None
     report: QualityReport | None = None
     surface: tuple[np.ndarray, np.ndarray] | None = None
+    provenance: str | None = None
+    fallback_reason: str | None = None
 
     def row(self) -> dict:
         """One manifest row (plain types)."""
@@ -127,7 +151,8 @@ class PartResult:
             "error": self.error,
             "timings": {k: round(v, 4) for k, v in self.timings.items()},
             "genus": self.part_meta.get("genus"),
-            "provenance": (self.cloud.meta.get("provenance") if self.cloud is not None else None),
+            "provenance": self.provenance or (self.cloud.meta.get("provenance") if self.cloud is not None else None),
+            "fallback_reason": self.fallback_reason,
             "hexes": q.get("hex_count"),
             "sj_min": q.get("sj_min"),
             "sj_avg": q.get("sj_avg"),
@@ -151,6 +176,7 @@ class PartResult:
             self.polycube.save(out / "polycube.npz")
         if self.report is not None:
             self.report.write(out)
+            _add_provenance(out / "quality.json", self.row())
         write_json(out / "result.json", self.row())
         return out
 
@@ -203,26 +229,41 @@ def mesh_surface(
         genus = res.part_meta.get("genus")
         with clock("sample"):
             sample = poisson_disk(Vc, F, config.n_sample, seed=config.seed)
-        with clock("polycube"):
-            cloud = source(sample, Vc, F, config)
-        res.cloud = cloud
-        with clock("cleanup"):
-            P, N, keep = remove_outliers(cloud.points, cloud.normals)
-        with clock("extract"):
-            poly = extract(P, N, genus=genus, config=config.extract, part=name)
-            poly.meta["provenance"] = cloud.meta.get("provenance")
-        res.polycube = poly
+        if config.polycube not in POLYCUBE_MODES:
+            raise ValueError(f"polycube must be one of {POLYCUBE_MODES}; got {config.polycube!r}")
+        classical = ClassicalSource(config.classical)
+        use_classical = config.polycube == "classical" or source is None
+        first = classical if use_classical else source
+        try:
+            cloud, P, N, poly = _polycube_stages(first, sample, Vc, F, genus, config, name, clock, res)
+        except PolycubeError as exc:
+            if config.polycube != "auto" or use_classical:
+                raise
+            failed_stage = clock.stage
+            res.fallback_reason = f"{failed_stage}: {exc.reason}"
+            res.timings["rejected_" + failed_stage] = res.timings.pop(failed_stage, 0.0)
+            for k in ("polycube", "cleanup", "extract"):
+                if k in res.timings:
+                    res.timings["rejected_" + k] = res.timings.pop(k)
+            cloud, P, N, poly = _polycube_stages(classical, sample, Vc, F, genus, config, name, clock, res)
+        res.provenance = cloud.meta.get("provenance")
         with clock("register"):
-            rng = np.random.default_rng(config.seed + 5)
-            sub = rng.choice(len(P), size=min(config.n_register, len(P)), replace=False)
-            corr = align(sample, P[sub], N[sub])
+            if hasattr(cloud, "correspondence"):  # the classical path knows its map exactly
+                corr = cloud.correspondence()
+            else:
+                rng = np.random.default_rng(config.seed + 5)
+                sub = rng.choice(len(P), size=min(config.n_register, len(P)), replace=False)
+                corr = align(sample, P[sub], N[sub])
         with clock("partition"):
             if config.target_size is not None:
                 mesh_pc = partition(poly, target_size=config.target_size)
             else:
                 mesh_pc = partition(poly, target_hexes=config.target_hexes)
         with clock("pullback"):
-            mesh_c = pull_back(mesh_pc, corr.map_points, Vc, F, config.pullback)
+            if hasattr(cloud, "correspondence"):
+                mesh_c = _pull_back_classical(mesh_pc, corr, Vc, F, config)
+            else:
+                mesh_c = pull_back(mesh_pc, corr.map_points, Vc, F, config.pullback)
         with clock("report"):
             mesh = HexMesh(T.inverse(mesh_c.points), mesh_c.hexes, mesh_c.boundary, meta=dict(mesh_c.meta))
             Vo = np.asarray(V, float) if not canonical else Vc
@@ -235,6 +276,46 @@ def mesh_surface(
         res.stage = exc.stage
         raise
     return res
+
+
+def _polycube_stages(source, sample, Vc, F, genus, config, name, clock, res):
+    """Polycube cloud -> outlier filter -> structure extraction (validated) for one source."""
+    with clock("polycube"):
+        cloud = source(sample, Vc, F, config)
+    res.cloud = cloud
+    with clock("cleanup"):
+        P, N, _ = remove_outliers(cloud.points, cloud.normals)
+    with clock("extract"):
+        poly = extract(P, N, genus=genus, config=config.extract, part=name)
+        poly.meta["provenance"] = cloud.meta.get("provenance")
+    res.polycube = poly
+    return cloud, P, N, poly
+
+
+def _pull_back_classical(mesh_pc, corr, Vc, F, config: PipelineConfig) -> HexMesh:
+    """Pullback with the classical (exact on the surface) map: the interior mode of
+    ``config.classical.interior`` first; when that mesh is not valid, the other mode too,
+    keeping the mesh with the higher minimum scaled Jacobian (``meta["interior"]`` says which)."""
+    modes = [config.classical.interior] + [m for m in ("harmonic", "correction") if m != config.classical.interior]
+    best = None
+    for mode in modes:
+        mesh = pull_back(mesh_pc, corr.map_points, Vc, F, dataclasses.replace(config.pullback, interior=mode))
+        mesh.meta["interior"] = mode
+        if best is None or (mesh.meta.get("sj_min") or -np.inf) > (best.meta.get("sj_min") or -np.inf):
+            best = mesh
+        if best.meta.get("valid"):
+            break
+    return best
+
+
+def _add_provenance(path: Path, row: dict) -> None:
+    """Record which polycube was used (and why) in an existing ``quality.json``."""
+    import json
+
+    d = json.loads(Path(path).read_text())
+    d["provenance"] = row.get("provenance")
+    d["fallback_reason"] = row.get("fallback_reason")
+    write_json(path, d)
 
 
 def mesh_part(path: str | Path, source: PolycubeSource | Callable, config: PipelineConfig = PipelineConfig(), **load_kw) -> PartResult:

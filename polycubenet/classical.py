@@ -1,0 +1,841 @@
+"""A polycube built from the part's own surface (the classical path, no model).
+
+The surface (canonical frame, diagonal 1) is turned into a polycube in four steps,
+in the spirit of Gregson et al. 2011 (*All-hex mesh generation via volumetric
+polycube deformation*) and Fu et al. 2016, written here from the ideas, not from
+their code:
+
+1. **Labelling** (:func:`label_faces`).  Every triangle gets one of the six labels
+   ``2 * axis + (sign > 0)`` (the order of :data:`polycubenet.pullback.LABELS`).  The
+   start is the axis closest to its normal; the labels are then smoothed by minimising
+   an energy of the graph-cut kind -- fidelity ``area * (1 - n . d_label)`` plus a Potts
+   term ``compactness * edge length`` on every edge between two labels, cheaper across
+   sharp edges, and prohibitive between opposite labels (+x next to -x) -- by iterated
+   conditional modes (each sweep moves a random half of the faces that want to change,
+   so the synchronous update cannot oscillate).
+2. **Validity and repair** (:func:`label_issues`, :func:`repair_labels`).  Charts are
+   the connected groups of triangles with one label.  A chart of a polycube is a
+   rectilinear polygon, so it needs neighbours of *both* other axes and a minimum
+   area; charts that fail are merged into the neighbour they share the longest border
+   with (one that no other neighbour contradicts).  Opposite labels that touch are
+   relabelled.  The remaining checks are reported: corners where more than three
+   charts meet, vertices that would have to sit on two planes of one axis, and
+   turning points (a chart border that reverses direction along the axis it must
+   follow).
+3. **Refinement** (:func:`split_constrained_edges`).  An edge inside a chart whose two
+   ends both lie on the border with charts of another axis would collapse when the
+   chart is flattened (its triangle then has three collinear corners); such edges are
+   split at their midpoint (a point of the original surface, so the map stays exact).
+4. **Deformation** (:func:`deform_to_polycube`).  An as-rigid-as-possible iteration:
+   each triangle's best rotation from its rest shape (local step) is corrected by the
+   smallest rotation that turns its normal onto its label's axis; the rotated rest
+   edges are the targets of a sparse least-squares solve per coordinate (global step)
+   in which, for each triangle of a chart with axis ``a``, the ``a``-component of its
+   edges gets an extra weight that grows every iteration (flatness).  The result is
+   then made exact: every chart's vertices take the chart's mean coordinate along its
+   axis (charts of one axis sharing a vertex share the plane).  Flipped or degenerate
+   triangles are counted (``meta["flipped"]``): the map is injective when there are
+   none.
+
+The output (:class:`ClassicalSource`) is a :class:`ClassicalCloud`: a
+:class:`~polycubenet.data.PolycubeCloud` (points on the flattened surface with their
+chart's axis as normal, ``provenance = "classical"``) that also carries the flattened
+mesh and the original vertices, so its :meth:`ClassicalCloud.correspondence` gives the
+exact map polycube -> part (:class:`SurfaceMap`) that the pipeline uses instead of
+registration.  ``structure.extract`` and everything after it are shared with the
+learned path.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+from scipy.sparse.linalg import factorized
+from scipy.spatial import cKDTree
+
+from .data import PolycubeCloud
+from .errors import PolycubeError
+from .frame import face_normals_areas
+from .sampling import interpolate, poisson_disk
+
+#: unit direction of each label ``2 * axis + (sign > 0)``: -x, +x, -y, +y, -z, +z
+DIRECTIONS = np.array(
+    [[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], dtype=np.float64
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class ClassicalConfig:
+    """Parameters of the classical polycube (lengths relative to the canonical diagonal 1).
+
+    Attributes
+    ----------
+    compactness : float
+        Weight of the Potts term per mean edge length against the fidelity per mean
+        triangle area.  Larger gives fewer, more compact charts.
+    sharp_angle_deg : float
+        Across an edge whose dihedral angle exceeds this, a label change costs
+        ``sharp_discount`` times less.
+    sharp_discount : float
+    smooth_sweeps : int
+        Sweeps of iterated conditional modes.
+    min_chart_area : float
+        A chart smaller than this fraction of the total area is merged into a neighbour.
+    repair_rounds : int
+        Rounds of merge / relabel / smooth.
+    deform_iterations : int
+        Local/global iterations of the deformation.
+    flat_weight_start, flat_weight_end : float
+        Flatness weight of the first and last iteration (geometric schedule).
+    max_faces : int
+        A surface with more triangles is first decimated to this many (quadric error,
+        open3d), kept only if it stays a closed manifold of the same genus without
+        self-intersections; the pullback still projects onto the full surface.
+    interior : str
+        The pullback's interior mode tried first for this map (``"harmonic"``: the map is
+        exact on the surface only, so interior nodes are placed harmonically); when that
+        mesh is not valid the pipeline also tries the other mode and keeps the better.
+    fix_rounds : int
+        Rounds of relabelling flipped triangles and flattening again.
+    retries : int
+        When the flattened surface has flipped triangles, the labelling is redone with
+        ``compactness`` doubled, up to this many times; the attempt with the fewest
+        flips is kept.
+    """
+
+    compactness: float = 1.5
+    sharp_angle_deg: float = 50.0
+    sharp_discount: float = 4.0
+    smooth_sweeps: int = 40
+    min_chart_area: float = 0.002
+    repair_rounds: int = 30
+    deform_iterations: int = 25
+    flat_weight_start: float = 1.0
+    flat_weight_end: float = 1e4
+    retries: int = 2
+    fix_rounds: int = 4
+    max_faces: int = 6000
+    interior: str = "harmonic"
+
+
+# --------------------------------------------------------------------------- topology
+
+
+def edge_topology(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Undirected edges ``(E, 2)`` and their two faces ``(E, 2)`` of a closed 2-manifold.
+
+    Raises
+    ------
+    PolycubeError
+        When an edge does not have exactly two faces.
+    """
+    F = np.asarray(F, dtype=np.int64)
+    nf = len(F)
+    he = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    key = np.sort(he, axis=1)
+    edges, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    if np.any(counts != 2):
+        raise PolycubeError(f"surface is not a closed 2-manifold ({int((counts != 2).sum())} bad edges)")
+    order = np.argsort(inv.ravel(), kind="stable")
+    faces = np.tile(np.arange(nf), 3)[order].reshape(-1, 2)
+    return edges, faces
+
+
+def _dihedral(normals: np.ndarray, edge_faces: np.ndarray) -> np.ndarray:
+    c = np.einsum("ij,ij->i", normals[edge_faces[:, 0]], normals[edge_faces[:, 1]])
+    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def charts_of(labels: np.ndarray, edge_faces: np.ndarray) -> tuple[int, np.ndarray]:
+    """Connected groups of faces with one label: ``(count, chart id per face (F,))``."""
+    same = labels[edge_faces[:, 0]] == labels[edge_faces[:, 1]]
+    ef = edge_faces[same]
+    n = len(labels)
+    g = sp.coo_matrix((np.ones(len(ef)), (ef[:, 0], ef[:, 1])), shape=(n, n))
+    return connected_components(g, directed=False)
+
+
+# --------------------------------------------------------------------------- labelling
+
+
+def _pair_cost(compactness_big: float) -> np.ndarray:
+    """Potts cost between labels: 0 same, 1 different, ``compactness_big`` opposite."""
+    P = 1.0 - np.eye(6)
+    for l in range(6):
+        P[l, l ^ 1] = compactness_big
+    return P
+
+
+def smooth_labels(
+    labels: np.ndarray,
+    normals: np.ndarray,
+    areas: np.ndarray,
+    edge_faces: np.ndarray,
+    edge_w: np.ndarray,
+    sweeps: int,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """Iterated conditional modes on fidelity + Potts (see the module docstring)."""
+    labels = labels.copy()
+    data = (areas / areas.mean())[:, None] * (1.0 - normals @ DIRECTIONS.T)
+    P = _pair_cost(25.0)
+    f0, f1 = edge_faces[:, 0], edge_faces[:, 1]
+    n = len(labels)
+    for _ in range(sweeps):
+        cost = data.copy()
+        np.add.at(cost, f0, edge_w[:, None] * P[labels[f1]])
+        np.add.at(cost, f1, edge_w[:, None] * P[labels[f0]])
+        best = np.argmin(cost, axis=1)
+        want = np.flatnonzero(best != labels)
+        if len(want) == 0:
+            break
+        move = want[rng.random(len(want)) < 0.5] if len(want) > 8 else want
+        labels[move] = best[move]
+    return labels
+
+
+def _edge_weights(V, F, edges, edge_faces, normals, config: ClassicalConfig) -> np.ndarray:
+    length = np.linalg.norm(V[edges[:, 0]] - V[edges[:, 1]], axis=1)
+    w = config.compactness * length / max(length.mean(), 1e-12)
+    sharp = _dihedral(normals, edge_faces) > config.sharp_angle_deg
+    w[sharp] /= config.sharp_discount
+    return w
+
+
+def _chart_graph(labels, edge_faces, edge_len, chart):
+    """Border length between every pair of adjacent charts: dict ``(c, d) -> length``."""
+    a, b = chart[edge_faces[:, 0]], chart[edge_faces[:, 1]]
+    diff = a != b
+    n = int(chart.max()) + 1
+    M = sp.coo_matrix((edge_len[diff], (a[diff], b[diff])), shape=(n, n)).tocsr()
+    M = M + M.T
+    return M
+
+
+def repair_labels(
+    labels: np.ndarray,
+    V: np.ndarray,
+    F: np.ndarray,
+    normals: np.ndarray,
+    areas: np.ndarray,
+    edges: np.ndarray,
+    edge_faces: np.ndarray,
+    edge_w: np.ndarray,
+    config: ClassicalConfig,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, dict]:
+    """Merge charts that cannot be polycube faces and separate opposite labels.
+
+    Returns the repaired labels and counts of what was done.
+    """
+    labels = labels.copy()
+    edge_len = np.linalg.norm(V[edges[:, 0]] - V[edges[:, 1]], axis=1)
+    total = areas.sum()
+    merged = relabelled = 0
+    for _ in range(config.repair_rounds):
+        changed = False
+        # opposite labels touching: the face with the worse fidelity takes its best third axis
+        opp = np.flatnonzero(labels[edge_faces[:, 0]] == (labels[edge_faces[:, 1]] ^ 1))
+        if len(opp):
+            for e in opp:
+                f, g = edge_faces[e]
+                fit_f = normals[f] @ DIRECTIONS[labels[f]]
+                fit_g = normals[g] @ DIRECTIONS[labels[g]]
+                h = f if fit_f < fit_g else g
+                ax = labels[h] // 2
+                cand = [l for l in range(6) if l // 2 != ax]
+                labels[h] = cand[int(np.argmax(normals[h] @ DIRECTIONS[cand].T))]
+                relabelled += 1
+            changed = True
+        n_ch, chart = charts_of(labels, edge_faces)
+        ch_area = np.bincount(chart, weights=areas, minlength=n_ch)
+        ch_label = np.zeros(n_ch, dtype=np.int64)
+        ch_label[chart] = labels
+        M = _chart_graph(labels, edge_faces, edge_len, chart)
+        bad = []
+        for c in range(n_ch):
+            nb = M.indices[M.indptr[c] : M.indptr[c + 1]]
+            other_axes = {int(ch_label[d] // 2) for d in nb} - {int(ch_label[c] // 2)}
+            if ch_area[c] < config.min_chart_area * total or len(other_axes) < 2:
+                bad.append(c)
+        # smallest first; a chart merges only if none of its neighbours merged this round
+        bad.sort(key=lambda c: ch_area[c])
+        touched = np.zeros(n_ch, dtype=bool)
+        new_label = {}
+        for c in bad:
+            nb = M.indices[M.indptr[c] : M.indptr[c + 1]]
+            ln = np.asarray(M.data[M.indptr[c] : M.indptr[c + 1]])
+            if touched[c] or len(nb) == 0 or touched[nb].any():
+                continue
+            nb_labels = ch_label[nb]
+            by_label: dict[int, float] = {}
+            for d_label, length in zip(nb_labels, ln):
+                by_label[int(d_label)] = by_label.get(int(d_label), 0.0) + float(length)
+            ok = [l for l in by_label if (l ^ 1) not in by_label]
+            pool = ok if ok else list(by_label)
+            target = max(pool, key=lambda l: by_label[l])
+            new_label[c] = target
+            touched[c] = True
+            touched[nb] = True
+        if new_label:
+            for c, l in new_label.items():
+                labels[chart == c] = l
+            merged += len(new_label)
+            changed = True
+        if not changed:
+            break
+        labels = smooth_labels(labels, normals, areas, edge_faces, edge_w, 3, rng)
+    return labels, {"merged_charts": merged, "relabelled_faces": relabelled}
+
+
+def label_faces(V: np.ndarray, F: np.ndarray, config: ClassicalConfig = ClassicalConfig(), seed: int = 0):
+    """Polycube labels ``(F,) int`` of the surface ``(V, F)`` (canonical frame) and a report dict."""
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    rng = np.random.default_rng(seed)
+    normals, areas = face_normals_areas(V, F)
+    edges, edge_faces = edge_topology(F)
+    labels = np.argmax(normals @ DIRECTIONS.T, axis=1)
+    w = _edge_weights(V, F, edges, edge_faces, normals, config)
+    labels = smooth_labels(labels, normals, areas, edge_faces, w, config.smooth_sweeps, rng)
+    labels, rep = repair_labels(labels, V, F, normals, areas, edges, edge_faces, w, config, rng)
+    return labels, rep
+
+
+# --------------------------------------------------------------------------- checks
+
+
+def vertex_axes(F: np.ndarray, labels: np.ndarray, n_vertices: int) -> np.ndarray:
+    """``(nv, 3) bool``: vertex touches a face whose label has that axis."""
+    out = np.zeros((n_vertices, 3), dtype=bool)
+    for k in range(3):
+        out[F[:, k], labels // 2] = True
+    return out
+
+
+def label_issues(V: np.ndarray, F: np.ndarray, labels: np.ndarray) -> dict:
+    """Validity checks of a labelling (counts; all zero for a clean polycube labelling).
+
+    ``opposite_edges``: edges between opposite labels.  ``bad_charts``: charts without
+    neighbours of both other axes.  ``high_valence_corners``: vertices where more than
+    three charts meet.  ``turning_points``: vertices inside a border between an
+    ``a``-chart and a ``b``-chart where the border reverses its direction along the third
+    axis ``c`` (measured on ``V``; meaningful on the flattened surface).
+    """
+    F = np.asarray(F, dtype=np.int64)
+    edges, edge_faces = edge_topology(F)
+    n_ch, chart = charts_of(labels, edge_faces)
+    la, lb = labels[edge_faces[:, 0]], labels[edge_faces[:, 1]]
+    opposite = int((la == (lb ^ 1)).sum())
+    ch_label = np.zeros(n_ch, dtype=np.int64)
+    ch_label[chart] = labels
+    ca, cb = chart[edge_faces[:, 0]], chart[edge_faces[:, 1]]
+    border = ca != cb
+    nb_axes = [set() for _ in range(n_ch)]
+    for c, d in zip(ca[border], cb[border]):
+        nb_axes[c].add(int(ch_label[d] // 2))
+        nb_axes[d].add(int(ch_label[c] // 2))
+    bad_charts = sum(1 for c in range(n_ch) if len(nb_axes[c] - {int(ch_label[c] // 2)}) < 2)
+    # corner valence: distinct charts around each vertex
+    nv = len(V)
+    vc = np.unique(np.column_stack([F.ravel(), np.repeat(chart, 3)]), axis=0)
+    valence = np.bincount(vc[:, 0], minlength=nv)
+    high = int((valence > 3).sum())
+    # turning points along borders
+    turning = 0
+    be = edges[border]
+    bl = np.sort(np.column_stack([la[border] // 2, lb[border] // 2]), axis=1)
+    for a, b in ((0, 1), (0, 2), (1, 2)):
+        c = 3 - a - b
+        sel = (bl[:, 0] == a) & (bl[:, 1] == b)
+        if not sel.any():
+            continue
+        E = be[sel]
+        d = V[E[:, 1], c] - V[E[:, 0], c]
+        # at each border vertex of degree 2 along this border type: the two edges must move
+        # the same way along c (one in, one out), i.e. the signed directions away from the
+        # vertex have opposite signs
+        away = np.concatenate([d, -d])
+        verts = np.concatenate([E[:, 0], E[:, 1]])
+        deg = np.bincount(verts, minlength=nv)
+        s_pos = np.bincount(verts, weights=(away > 0).astype(float), minlength=nv)
+        inner = (deg == 2) & (valence <= 2)
+        turning += int((inner & ((s_pos == 2) | (s_pos == 0))).sum())
+    # vertices that touch two different charts of one axis (would need two planes)
+    vc_axis = np.column_stack([vc[:, 0], ch_label[vc[:, 1]] // 2])
+    _, cnt = np.unique(vc_axis, axis=0, return_counts=True)
+    two_planes = int((cnt > 1).sum())
+    return {
+        "charts": int(n_ch),
+        "opposite_edges": opposite,
+        "bad_charts": int(bad_charts),
+        "high_valence_corners": high,
+        "turning_points": int(turning),
+        "two_plane_vertices": two_planes,
+    }
+
+
+# --------------------------------------------------------------------------- refinement
+
+
+def split_constrained_edges(V: np.ndarray, F: np.ndarray, labels: np.ndarray, max_rounds: int = 8):
+    """Split chart-interior edges whose ends both lie on borders with one other axis.
+
+    Returns ``(V', F', labels', parent)`` where ``parent (nv', 2)`` gives, for each
+    vertex, the two original-or-earlier vertices it is the midpoint of (a vertex of
+    ``V`` is its own parent twice).
+    """
+    V = np.asarray(V, dtype=np.float64).copy()
+    F = np.asarray(F, dtype=np.int64).copy()
+    labels = labels.copy()
+    parent = np.repeat(np.arange(len(V))[:, None], 2, axis=1)
+    for _ in range(max_rounds):
+        edges, edge_faces = edge_topology(F)
+        la, lb = labels[edge_faces[:, 0]], labels[edge_faces[:, 1]]
+        inside = la == lb
+        ax = vertex_axes(F, labels, len(V))
+        own = la // 2
+        both = ax[edges[:, 0]] & ax[edges[:, 1]]
+        both[np.arange(len(edges)), own] = False
+        cand = np.flatnonzero(inside & both.any(axis=1))
+        if len(cand) == 0:
+            break
+        # one split per face per round
+        used = np.zeros(len(F), dtype=bool)
+        chosen = []
+        for e in cand:
+            f, g = edge_faces[e]
+            if used[f] or used[g]:
+                continue
+            used[f] = used[g] = True
+            chosen.append(e)
+        chosen = np.asarray(chosen, dtype=np.int64)
+        m = len(V) + np.arange(len(chosen))
+        i, j = edges[chosen, 0], edges[chosen, 1]
+        V = np.vstack([V, 0.5 * (V[i] + V[j])])
+        parent = np.vstack([parent, np.column_stack([i, j])])
+        newF, newL = [], []
+        drop = np.zeros(len(F), dtype=bool)
+        for k, e in enumerate(chosen):
+            a, b = edges[e]
+            for f in edge_faces[e]:
+                tri = F[f]
+                # rotate so that the split edge is (tri[0], tri[1]) in face order
+                for r in range(3):
+                    t = np.roll(tri, -r)
+                    if {t[0], t[1]} == {a, b}:
+                        break
+                p, q, s = t
+                newF += [[p, m[k], s], [m[k], q, s]]
+                newL += [labels[f], labels[f]]
+                drop[f] = True
+        F = np.vstack([F[~drop], np.asarray(newF, dtype=np.int64)])
+        labels = np.concatenate([labels[~drop], np.asarray(newL, dtype=np.int64)])
+    return V, F, labels, parent
+
+
+# --------------------------------------------------------------------------- deformation
+
+
+def _rotation_between(n: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Smallest rotations ``(K, 3, 3)`` taking unit ``n`` onto unit ``d`` (row-wise)."""
+    v = np.cross(n, d)
+    c = np.einsum("ij,ij->i", n, d)
+    s = np.linalg.norm(v, axis=1)
+    K = np.zeros((len(n), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    I = np.broadcast_to(np.eye(3), K.shape)
+    coef = np.where(s > 1e-12, (1.0 - c) / np.maximum(s, 1e-12) ** 2, 0.5)
+    R = I + K + coef[:, None, None] * (K @ K)
+    # antiparallel: rotate by pi about an axis perpendicular to d
+    anti = (c < -1.0 + 1e-9) & (s < 1e-6)
+    if anti.any():
+        dd = d[anti]
+        perp = np.cross(dd, np.where(np.abs(dd[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
+        perp /= np.linalg.norm(perp, axis=1, keepdims=True)
+        R[anti] = 2.0 * np.einsum("ki,kj->kij", perp, perp) - np.eye(3)
+    return R
+
+
+def _best_rotations(E0: np.ndarray, E: np.ndarray) -> np.ndarray:
+    """Per face, the rotation ``R`` minimising ``sum_k |R e0_k - e_k|^2`` (``E0, E: (F, 3, 3)``, rows = edges)."""
+    S = np.einsum("fki,fkj->fij", E, E0)  # sum_k e_k e0_k^T
+    U, _, Vt = np.linalg.svd(S)
+    det = np.linalg.det(U @ Vt)
+    D = np.ones((len(S), 3))
+    D[:, 2] = np.sign(det)
+    D[D[:, 2] == 0, 2] = 1.0
+    return (U * D[:, None, :]) @ Vt
+
+
+def _incidence(F: np.ndarray, nv: int) -> sp.csr_matrix:
+    """``(3F, nv)``: row ``k * nF + f`` is edge ``F[f, k+1] - F[f, k]``."""
+    nf = len(F)
+    rows = np.arange(3 * nf)
+    heads = np.concatenate([F[:, 1], F[:, 2], F[:, 0]])
+    tails = np.concatenate([F[:, 0], F[:, 1], F[:, 2]])
+    data = np.concatenate([np.ones(3 * nf), -np.ones(3 * nf)])
+    return sp.csr_matrix((data, (np.concatenate([rows, rows]), np.concatenate([heads, tails]))), shape=(3 * nf, nv))
+
+
+def _face_edges(X: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """``(F, 3, 3)``: the three edge vectors of each face (rows), in the order of :func:`_incidence`."""
+    return np.stack([X[F[:, 1]] - X[F[:, 0]], X[F[:, 2]] - X[F[:, 1]], X[F[:, 0]] - X[F[:, 2]]], axis=1)
+
+
+def snap_charts(X: np.ndarray, F: np.ndarray, labels: np.ndarray, areas: np.ndarray | None = None) -> np.ndarray:
+    """Make every chart exactly planar at its (area-weighted) mean coordinate along its axis.
+
+    Charts of one axis that share a vertex are put on one plane.
+    """
+    X = X.copy()
+    _, edge_faces = edge_topology(F)
+    n_ch, chart = charts_of(labels, edge_faces)
+    if areas is None:
+        _, areas = face_normals_areas(X, F)
+    areas = np.maximum(areas, 1e-16)
+    ch_axis = np.zeros(n_ch, dtype=np.int64)
+    ch_axis[chart] = labels // 2
+    # union charts of one axis that share a vertex
+    vc = np.unique(np.column_stack([F.ravel(), np.repeat(chart, 3)]), axis=0)
+    rows, cols = [], []
+    for a in range(3):
+        sel = vc[ch_axis[vc[:, 1]] == a]
+        if len(sel) == 0:
+            continue
+        order = np.argsort(sel[:, 0], kind="stable")
+        s = sel[order]
+        same = s[1:, 0] == s[:-1, 0]
+        rows.append(s[1:, 1][same])
+        cols.append(s[:-1, 1][same])
+    if rows:
+        r, c = np.concatenate(rows), np.concatenate(cols)
+        g = sp.coo_matrix((np.ones(len(r)), (r, c)), shape=(n_ch, n_ch))
+        _, group = connected_components(g, directed=False)
+    else:
+        group = np.arange(n_ch)
+    fgroup = group[chart]
+    ng = int(group.max()) + 1
+    faxis = labels // 2
+    fcoord = X[F, faxis[:, None]].mean(axis=1)
+    num = np.bincount(fgroup, weights=areas * fcoord, minlength=ng)
+    den = np.bincount(fgroup, weights=areas, minlength=ng)
+    plane = num / np.maximum(den, 1e-300)
+    for k in range(3):
+        X[F[:, k], faxis] = plane[fgroup]
+    return X
+
+
+def flipped_faces(X: np.ndarray, F: np.ndarray, labels: np.ndarray, rel_area: float = 1e-10) -> np.ndarray:
+    """``(F,) bool``: triangle whose normal disagrees with its label or whose area is ~0."""
+    cross = np.cross(X[F[:, 1]] - X[F[:, 0]], X[F[:, 2]] - X[F[:, 0]])
+    along = np.einsum("ij,ij->i", cross, DIRECTIONS[labels])
+    scale = np.linalg.norm(X.max(0) - X.min(0)) ** 2
+    return along <= rel_area * scale
+
+
+def deform_to_polycube(
+    V: np.ndarray,
+    F: np.ndarray,
+    labels: np.ndarray,
+    config: ClassicalConfig = ClassicalConfig(),
+) -> tuple[np.ndarray, dict]:
+    """Flatten every chart onto a plane of its axis (see the module docstring, step 4).
+
+    Returns the flattened vertices ``(nv, 3)`` and ``meta`` (iterations, flipped, residual).
+    """
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    nv, nf = len(V), len(F)
+    D = _incidence(F, nv)
+    E0 = _face_edges(V, F)
+    target_dir = DIRECTIONS[labels]
+    faxis = labels // 2
+    X = V.copy()
+    n_it = max(1, config.deform_iterations)
+    weights = np.geomspace(config.flat_weight_start, config.flat_weight_end, n_it)
+    mu = 1e-6
+    centre = V.mean(axis=0)
+    for it in range(n_it):
+        E = _face_edges(X, F)
+        R = _best_rotations(E0, E)
+        # normal of the rest face rotated by R, then turned onto the target axis
+        n0 = np.cross(E0[:, 0], -E0[:, 2])
+        n0 /= np.maximum(np.linalg.norm(n0, axis=1, keepdims=True), 1e-300)
+        nr = np.einsum("fij,fj->fi", R, n0)
+        Rt = _rotation_between(nr, target_dir) @ R
+        T = np.einsum("fij,fkj->fki", Rt, E0)  # rotated rest edges (F, 3 edges, 3)
+        for a in range(3):
+            w = np.ones(nf)
+            w[faxis == a] += weights[it]
+            W = np.tile(w, 3)
+            t = T[:, :, a].T.ravel()  # row k * nF + f
+            A = (D.T @ sp.diags(W) @ D + mu * sp.identity(nv)).tocsc()
+            b = D.T @ (W * t) + mu * X[:, a]
+            X[:, a] = factorized(A)(b)
+        X -= X.mean(axis=0) - centre
+    Xs = snap_charts(X, F, labels)
+    resid = float(np.abs(Xs - X).max())
+    before = int(flipped_faces(Xs, F, labels).sum())
+    Xs = untangle_flat(Xs, F, labels)
+    flips = flipped_faces(Xs, F, labels)
+    return Xs, {"iterations": n_it, "flipped_before_untangle": before, "flipped": int(flips.sum()), "snap_residual": resid}
+
+
+def untangle_flat(X: np.ndarray, F: np.ndarray, labels: np.ndarray, rounds: int = 200) -> np.ndarray:
+    """Unfold the few flipped triangles a flattening leaves (zig-zag borders, turning points).
+
+    The vertices of flipped triangles and their neighbours move, in their free
+    coordinates only (those not fixed by a chart plane), to the mean of their
+    neighbours; chart planes stay exact.  Stops when nothing is flipped.
+    """
+    X = X.copy()
+    nv = len(X)
+    fixed = vertex_axes(F, labels, nv)
+    free = ~fixed
+    edges, _ = edge_topology(F)
+    src, dst = np.r_[edges[:, 0], edges[:, 1]], np.r_[edges[:, 1], edges[:, 0]]
+    # a border vertex averages over the neighbours on its own border (or corners of it),
+    # which straightens the border's order along its free axis; others over all neighbours
+    along = (fixed[dst] | ~fixed[src]).all(axis=1) & fixed[src].any(axis=1)
+    has_along = np.bincount(src[along], minlength=nv) >= 2
+    use = along | ~has_along[src]
+    A = sp.coo_matrix((np.ones(int(use.sum())), (src[use], dst[use])), shape=(nv, nv)).tocsr()
+    deg = np.asarray(A.sum(1)).ravel()
+    Aall = sp.coo_matrix((np.ones(len(src)), (src, dst)), shape=(nv, nv)).tocsr()
+    best, best_n = X, int(flipped_faces(X, F, labels).sum())
+    for _ in range(rounds):
+        bad = flipped_faces(X, F, labels)
+        if bad.sum() < best_n:
+            best, best_n = X, int(bad.sum())
+        if not bad.any():
+            break
+        act = np.zeros(nv, dtype=bool)
+        act[F[bad].ravel()] = True
+        act = act | (Aall @ act.astype(float) > 0)  # and their neighbours
+        mean = (A @ X) / np.maximum(deg, 1)[:, None]
+        move = act[:, None] & free
+        X = np.where(move, 0.5 * X + 0.5 * mean, X)
+    if int(flipped_faces(X, F, labels).sum()) < best_n:
+        best = X
+    return best
+
+
+# --------------------------------------------------------------------------- the map and the source
+
+
+@dataclasses.dataclass
+class SurfaceMap:
+    """Exact map from the polycube (the flattened surface ``(Vp, F)``) to the part ``(V, F)``.
+
+    A point on the polycube surface (closer than ``surface_tol``) goes to the same
+    barycentric position on the same triangle of the part; a point inside goes by the
+    inverse-distance-weighted displacement of the nearest flattened vertices (a smooth
+    volumetric extension for interior hex nodes).
+    """
+
+    Vp: np.ndarray
+    F: np.ndarray
+    V: np.ndarray
+    surface_tol: float = 1e-3
+    k: int = 16
+    meta: dict = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        self._tree = cKDTree(self.Vp)
+        self._disp = self.V - self.Vp
+
+    def project(self, points: np.ndarray):
+        """Closest point on the polycube mesh: ``(face_ids, barycentrics, distance)``."""
+        import trimesh
+
+        mesh = trimesh.Trimesh(self.Vp, self.F, process=False)
+        closest, dist, tri = trimesh.proximity.closest_point(mesh, points)
+        tri = np.asarray(tri, dtype=np.int64)
+        bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], closest)
+        bary = np.clip(np.nan_to_num(bary), 0.0, None)
+        s = bary.sum(1, keepdims=True)
+        bary = np.where(s > 0, bary / np.where(s > 0, s, 1), 1.0 / 3.0)
+        return tri, bary, np.asarray(dist)
+
+    def map_points(self, points: np.ndarray) -> np.ndarray:
+        P = np.asarray(points, dtype=np.float64)
+        out = np.empty_like(P)
+        if len(P) == 0:
+            return out
+        d, idx = self._tree.query(P, k=min(self.k, len(self.Vp)))
+        w = 1.0 / np.maximum(d, 1e-9) ** 2
+        out[:] = P + np.einsum("kn,knd->kd", w, self._disp[idx]) / w.sum(1, keepdims=True)
+        near = d[:, 0] < 0.25  # only points that can be near the surface are projected
+        if near.any():
+            sel = np.flatnonzero(near)
+            tri, bary, dist = self.project(P[sel])
+            on = dist <= self.surface_tol
+            out[sel[on]] = interpolate(self.V, self.F, tri[on], bary[on])
+        return out
+
+
+@dataclasses.dataclass
+class ClassicalCloud(PolycubeCloud):
+    """A :class:`PolycubeCloud` that also carries the flattened surface and the exact map.
+
+    Extra attributes (saved with the cloud): ``polycube_vertices (nv, 3)`` (flattened
+    surface), ``surface_vertices (nv, 3)`` (the same vertices on the part, canonical
+    frame), ``surface_faces (nf, 3)`` and ``face_labels (nf,)``.
+    """
+
+    polycube_vertices: np.ndarray | None = None
+    surface_vertices: np.ndarray | None = None
+    surface_faces: np.ndarray | None = None
+    face_labels: np.ndarray | None = None
+
+    def correspondence(self) -> SurfaceMap:
+        """The exact polycube -> part map (``map_points`` like registration's Correspondence)."""
+        return SurfaceMap(
+            np.asarray(self.polycube_vertices, float),
+            np.asarray(self.surface_faces, np.int64),
+            np.asarray(self.surface_vertices, float),
+            meta={"method": "classical (exact, barycentric on the flattened surface)"},
+        )
+
+
+def relabel_flipped(V: np.ndarray, F: np.ndarray, labels: np.ndarray, flipped: np.ndarray) -> np.ndarray:
+    """Give each flipped triangle the label of an edge neighbour (the one whose axis best
+    fits the triangle's normal on the part), which removes the fold of a turning point
+    or a zig-zag border; neighbours whose label is opposite to another neighbour's are
+    avoided."""
+    labels = labels.copy()
+    normals, _ = face_normals_areas(V, F)
+    _, edge_faces = edge_topology(F)
+    nbrs = [[] for _ in range(len(F))]
+    for f, g in edge_faces[np.isin(edge_faces, np.flatnonzero(flipped)).any(1)]:
+        nbrs[f].append(g)
+        nbrs[g].append(f)
+    new = labels.copy()
+    for f in np.flatnonzero(flipped):
+        nl = {int(labels[g]) for g in nbrs[f]} - {int(labels[f])}
+        ok = [l for l in nl if (l ^ 1) not in {int(labels[g]) for g in nbrs[f]}]
+        pool = ok or list(nl)
+        if pool:
+            new[f] = max(pool, key=lambda l: float(normals[f] @ DIRECTIONS[l]))
+    return new
+
+
+def decimate(V: np.ndarray, F: np.ndarray, n_faces: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Quadric decimation of ``(V, F)`` to about ``n_faces`` triangles, or None when the result
+    is not a closed, self-intersection-free manifold of the same genus."""
+    import open3d as o3d
+
+    from .polycube import surface_genus
+
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V), o3d.utility.Vector3iVector(F.astype(np.int32)))
+    d = mesh.simplify_quadric_decimation(int(n_faces))
+    d.remove_unreferenced_vertices()
+    Vd, Fd = np.asarray(d.vertices, dtype=np.float64), np.asarray(d.triangles, dtype=np.int64)
+    try:
+        same = surface_genus(Fd) == surface_genus(F)
+    except PolycubeError:
+        return None
+    if not same or not d.is_vertex_manifold() or d.is_self_intersecting():
+        return None
+    _, areas = face_normals_areas(Vd, Fd)
+    if (areas <= 1e-14).any():
+        return None
+    return Vd, Fd
+
+
+def classical_polycube(V: np.ndarray, F: np.ndarray, config: ClassicalConfig = ClassicalConfig(), seed: int = 0):
+    """Label, repair, refine and flatten ``(V, F)`` (canonical frame).
+
+    Flipped triangles of a flattening are relabelled (:func:`relabel_flipped`) and the
+    surface flattened again, up to ``config.fix_rounds`` times; if flips remain, the
+    labelling restarts with doubled compactness (``config.retries`` times).
+
+    Returns ``(Vp, Vs, Fs, labels, meta)``: the flattened vertices, the refined surface's
+    vertices on the part, its faces and labels, and a report (per attempt: labelling
+    checks, flips, times).  The attempt with the fewest flipped triangles is returned.
+    """
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    decimated = None
+    if len(F) > config.max_faces:
+        dec = decimate(V, F, config.max_faces)
+        if dec is not None:
+            decimated = [int(len(F)), int(len(dec[1]))]
+            V, F = dec
+    attempts = []
+    best = None
+    cfg = config
+    for attempt in range(config.retries + 1):
+        t0 = time.perf_counter()
+        labels, rep = label_faces(V, F, cfg, seed=seed + attempt)
+        t1 = time.perf_counter()
+        Vs, Fs, ls = V, F, labels
+        t_ref = t_def = 0.0
+        kept = None
+        for fix in range(config.fix_rounds + 1):
+            ta = time.perf_counter()
+            Vs, Fs, ls, _ = split_constrained_edges(Vs, Fs, ls)
+            tb = time.perf_counter()
+            Vp, dmeta = deform_to_polycube(Vs, Fs, ls, cfg)
+            tc = time.perf_counter()
+            t_ref += tb - ta
+            t_def += tc - tb
+            if kept is not None and dmeta["flipped"] >= kept[4]["flipped"]:
+                break  # the relabelling did not help: keep the previous flattening
+            kept = (Vp, Vs, Fs, ls, dmeta, fix)
+            if dmeta["flipped"] == 0 or fix == config.fix_rounds:
+                break
+            ls = relabel_flipped(Vs, Fs, ls, flipped_faces(Vp, Fs, ls))
+        Vp, Vs, Fs, ls, dmeta, fix = kept
+        issues = label_issues(Vs, Fs, ls)
+        info = {
+            "compactness": cfg.compactness, **rep, **issues, **dmeta, "fix_rounds": fix,
+            "faces_refined": int(len(Fs)),
+            "time_label": t1 - t0, "time_refine": t_ref, "time_deform": t_def,
+        }
+        attempts.append(info)
+        if best is None or dmeta["flipped"] < best[-1]["flipped"]:
+            best = (Vp, Vs, Fs, ls, info)
+        if dmeta["flipped"] == 0:
+            break
+        cfg = dataclasses.replace(cfg, compactness=cfg.compactness * 2.0)
+    Vp, Vs, Fs, ls, info = best
+    return Vp, Vs, Fs, ls, {"attempts": attempts, "decimated": decimated, **info}
+
+
+@dataclasses.dataclass
+class ClassicalSource:
+    """Polycube source (``source(sample, V, F, config) -> PolycubeCloud``) built from the
+    surface itself; the returned :class:`ClassicalCloud` carries the exact map."""
+
+    config: ClassicalConfig = ClassicalConfig()
+
+    def __call__(self, sample, V, F, config) -> ClassicalCloud:
+        seed = int(getattr(config, "seed", 0))
+        n = int(getattr(config, "n_polycube", 16384))
+        Vp, Vs, Fs, ls, meta = classical_polycube(V, F, self.config, seed=seed)
+        s = poisson_disk(Vp, Fs, n, seed=seed + 31)
+        normals = DIRECTIONS[ls[s.face_ids]]
+        meta = {"provenance": "classical", **_plain(meta)}
+        return ClassicalCloud(
+            s.points, normals, meta=meta,
+            polycube_vertices=Vp, surface_vertices=Vs, surface_faces=Fs, face_labels=ls,
+        )
+
+
+def _plain(d):
+    if isinstance(d, dict):
+        return {str(k): _plain(v) for k, v in d.items()}
+    if isinstance(d, (list, tuple)):
+        return [_plain(v) for v in d]
+    if isinstance(d, (np.integer,)):
+        return int(d)
+    if isinstance(d, (np.floating,)):
+        return float(d)
+    return d

@@ -1,0 +1,116 @@
+"""The hybrid polycube policy of the pipeline: learned first, classical when it is invalid."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from polycubenet.data import Polycube
+from polycubenet.errors import PolycubeError
+from polycubenet.pipeline import OracleSource, PipelineConfig, mesh_part, mesh_part_safe
+
+SMALL = dict(n_sample=2048, n_polycube=8192, n_register=1500, target_hexes=1200)
+
+
+@pytest.fixture(scope="module")
+def l_block_file(tmp_path_factory):
+    a = trimesh.creation.box(bounds=[[0, 0, 0], [60, 20, 15]])
+    b = trimesh.creation.box(bounds=[[0, 0, 15], [20, 20, 45]])
+    m = trimesh.boolean.union([a, b], engine="manifold")
+    path = tmp_path_factory.mktemp("hybrid") / "l_block.stl"
+    m.export(path)
+    return path
+
+
+def _torus_like() -> Polycube:
+    """A genus-1 polycube: wrong for the genus-0 L-block."""
+    p = Polycube(np.linspace(-0.4, 0.4, 4), np.linspace(-0.3, 0.3, 4), np.array([-0.1, 0.1]), np.ones((3, 3, 1), bool))
+    p.occupancy[1, 1, 0] = False
+    return p
+
+
+class _Raises:
+    """A 'learned' source that gives up (as a model may when it cannot produce a cloud)."""
+
+    calls = 0
+
+    def __call__(self, sample, V, F, config):
+        type(self).calls += 1
+        raise PolycubeError("model produced no usable cloud")
+
+
+class _MustNotRun:
+    def __call__(self, sample, V, F, config):
+        raise AssertionError("the learned source must not be called in classical mode")
+
+
+def test_auto_falls_back_when_the_learned_polycube_fails_validation(l_block_file, tmp_path):
+    cfg = PipelineConfig(polycube="auto", **SMALL)
+    res = mesh_part(l_block_file, OracleSource(_torus_like()), cfg)
+    assert res.status == "meshed"
+    assert res.provenance == "classical"
+    assert "genus 1 differs from the part's genus 0" in res.fallback_reason
+    assert res.fallback_reason.startswith("extract:")
+    assert res.polycube.meta["provenance"] == "classical" and res.polycube.meta["genus"] == 0
+    q = res.report.to_dict()
+    assert q["valid"] and q["sj_min"] > 0.2 and q["surface"]["hausdorff"] < 0.02
+    # the rejected attempt's time is kept apart from the classical one
+    assert "rejected_extract" in res.timings and "extract" in res.timings and "polycube" in res.timings
+    row = res.row()
+    assert row["provenance"] == "classical" and row["fallback_reason"] == res.fallback_reason
+    out = res.write(tmp_path / "out")
+    qj = json.loads((out / "quality.json").read_text())
+    assert qj["provenance"] == "classical" and "genus 1" in qj["fallback_reason"]
+    rj = json.loads((out / "result.json").read_text())
+    assert rj["provenance"] == "classical" and rj["fallback_reason"] == res.fallback_reason
+
+
+def test_auto_falls_back_when_the_learned_source_raises(l_block_file):
+    _Raises.calls = 0
+    res = mesh_part(l_block_file, _Raises(), PipelineConfig(polycube="auto", **SMALL))
+    assert _Raises.calls == 1
+    assert res.provenance == "classical" and res.status == "meshed"
+    assert res.fallback_reason == "polycube: model produced no usable cloud"
+
+
+def test_auto_keeps_a_valid_learned_polycube(l_block_file):
+    from polycubenet.frame import canonicalize
+
+    m = trimesh.load(l_block_file)
+    Vc, _ = canonicalize(np.asarray(m.vertices, float), np.asarray(m.faces))
+    grid = [np.unique(np.round(Vc[:, a], 9)) for a in range(3)]  # the part is its own polycube
+    centres = np.stack(np.meshgrid(*[0.5 * (g[1:] + g[:-1]) for g in grid], indexing="ij"), -1).reshape(-1, 3)
+    inside = trimesh.Trimesh(Vc, m.faces, process=False).ray.contains_points(centres)
+    truth = Polycube(*grid, inside.reshape([len(g) - 1 for g in grid]))
+    res = mesh_part(l_block_file, OracleSource(truth), PipelineConfig(polycube="auto", **SMALL))
+    assert res.provenance == "oracle" and res.fallback_reason is None
+    assert res.row()["provenance"] == "oracle" and res.row()["fallback_reason"] is None
+    assert not any(k.startswith("rejected_") for k in res.timings)
+
+
+def test_learned_mode_does_not_fall_back(l_block_file):
+    cfg = PipelineConfig(polycube="learned", **SMALL)
+    with pytest.raises(PolycubeError, match="model produced no usable cloud") as err:
+        mesh_part(l_block_file, _Raises(), cfg)
+    assert err.value.stage == "polycube"
+    res = mesh_part_safe(l_block_file, OracleSource(_torus_like()), cfg)
+    assert res.status == "failed" and res.stage == "extract"
+
+
+def test_classical_mode_and_no_source(l_block_file):
+    cfg = PipelineConfig(polycube="classical", **SMALL)
+    res = mesh_part(l_block_file, _MustNotRun(), cfg)
+    assert res.provenance == "classical" and res.fallback_reason is None
+    assert res.report.to_dict()["valid"]
+    # no source at all: the classical polycube whatever the mode
+    res2 = mesh_part(l_block_file, None, PipelineConfig(polycube="learned", **SMALL))
+    assert res2.provenance == "classical"
+    np.testing.assert_array_equal(res2.polycube.occupancy, res.polycube.occupancy)
+
+
+def test_unknown_mode_is_rejected(l_block_file):
+    with pytest.raises(ValueError, match="polycube must be one of"):
+        mesh_part(l_block_file, _Raises(), PipelineConfig(polycube="magic", **SMALL))
