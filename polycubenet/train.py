@@ -1,7 +1,7 @@
 """Train PolycubeNet on synthetic shards: one command, resumable, CPU or (multi-)GPU.
 
-    python -m polycubenet.train --data DIR --run RUN --preset cpu --steps 20000
-    torchrun --nproc_per_node 4 -m polycubenet.train --data DIR --run RUN --preset paper ...
+    python -m polycubenet.train --data DIR --out RUN --preset cpu --steps 20000
+    torchrun --nproc_per_node 4 -m polycubenet.train --data DIR --out RUN --preset paper ...
 
 * Data: the shards of :mod:`polycubenet.synth` (condition = the shape's samples, target
   = the polycube's samples with axis normals), both subsampled at random to the
@@ -10,7 +10,7 @@
   stay axis normals), re-normalised to diagonal 1, and a small jitter on the condition.
 * AdamW, cosine decay with linear warm-up, gradient clipping, EMA weights, bf16
   autocast on CUDA, the hybrid loss of :class:`~polycubenet.model.Diffusion`.
-* ``RUN/last.pt`` is written atomically every ``--ckpt-every`` steps and at the end;
+* ``RUN/last.pt`` (``--out RUN``) is written atomically every ``--ckpt-every`` steps and at the end;
   ``--resume`` (the default when ``RUN/last.pt`` exists) continues from it, so a kill
   costs at most ``--ckpt-every`` steps.  ``RUN/log.jsonl`` gets one line per
   ``--log-every`` steps (loss, lr, held-out loss, seconds).
@@ -274,7 +274,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m polycubenet.train", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True, help="shard folder (python -m polycubenet.synth)")
-    ap.add_argument("--run", required=True, help="run folder (last.pt, log.jsonl)")
+    ap.add_argument("--out", required=True, help="run folder (last.pt, log.jsonl)")
     ap.add_argument("--eval-data", help="held-out shard folder for the held-out loss")
     ap.add_argument("--no-resume", action="store_true", help="start over even if RUN/last.pt exists")
     ap.add_argument("--device", help="cpu, cuda, cuda:1 (default: cuda:LOCAL_RANK when available)")
@@ -284,7 +284,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.add_argument("--" + f.name.replace("_", "-"), type=type(f.default), default=f.default)
     args = ap.parse_args(argv)
     cfg = TrainConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)})
-    out = train(args.data, args.run, cfg, eval_dir=args.eval_data, resume=not args.no_resume, device=args.device,
+    out = train(args.data, args.out, cfg, eval_dir=args.eval_data, resume=not args.no_resume, device=args.device,
                 progress=not args.no_progress, max_seconds=None if args.max_minutes is None else 60 * args.max_minutes)
     if _dist_env()[0] == 0:
         print(json.dumps(out))

@@ -1,0 +1,137 @@
+"""Training: data and augmentation, resume after a kill == uninterrupted run, checkpoints
+rebuild the model from the file alone, publishing, DDP with 2 CPU processes (gloo)."""
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from polycubenet.model.checkpoint import load_checkpoint, publish
+from polycubenet.synth.shards import write_dataset
+from polycubenet.train import PairData, TrainConfig, lr_at, train
+
+
+@pytest.fixture(scope="module")
+def shards(tmp_path_factory):
+    d = tmp_path_factory.mktemp("shards")
+    write_dataset(d, count=6, seed=321, per_shard=3, n_cond=128, n_target=128, progress=False)
+    return d
+
+
+CFG = TrainConfig(preset="tiny", steps=8, batch=4, points=64, warmup=2, ckpt_every=4, log_every=2, seed=5, threads=1)
+
+
+def test_batches_keep_the_pair_consistent(shards):
+    data = PairData(shards)
+    assert len(data) == 6
+    rng = np.random.default_rng(0)
+    x0, cond = data.batch(np.array([0, 3]), 50, rng, dataclasses.replace(CFG, jitter=0.0))
+    assert x0.shape == (2, 50, 6) and cond.shape == (2, 50, 3)
+    n = x0[..., 3:].numpy()
+    # normals stay unit axis vectors under the anisotropic scaling
+    assert np.allclose(np.abs(n).max(axis=-1), 1) and np.allclose(np.linalg.norm(n, axis=-1), 1)
+    # the polycube points still lie on planes of their own normal's axis: per axis label,
+    # the coordinate along that axis takes few distinct values (faces), like the raw data
+    raw = data.target_points[0]
+    raw_n = data.target_normals[0]
+    ax = np.abs(raw_n).argmax(axis=1)
+    x0_full, _ = data.batch(np.array([0]), 128, np.random.default_rng(1), dataclasses.replace(CFG, jitter=0.0))
+    p, q = x0_full[0, :, :3].numpy(), x0_full[0, :, 3:].numpy()
+    qa = np.abs(q).argmax(axis=1)
+    for a in range(3):
+        assert len(np.unique(np.round(p[qa == a, a], 5))) <= len(np.unique(np.round(raw[ax == a, a], 5)))
+    # condition re-normalised to diagonal ~1 (subset of the full cloud: at most 1)
+    d = np.linalg.norm(cond.numpy().max(axis=1) - cond.numpy().min(axis=1), axis=-1)
+    assert np.all(d <= 1.0 + 1e-5) and np.all(d > 0.6)
+
+
+def test_learning_rate_schedule():
+    cfg = TrainConfig(lr=1e-3, warmup=10, steps=110, min_lr_ratio=0.1)
+    assert lr_at(0, cfg) == pytest.approx(1e-4)
+    assert lr_at(9, cfg) == pytest.approx(1e-3)
+    assert lr_at(60, cfg) == pytest.approx(1e-3 * (0.1 + 0.9 * 0.5))
+    assert lr_at(110, cfg) == pytest.approx(1e-4)
+
+
+def test_resume_after_interruption_equals_one_run(shards, tmp_path):
+    full = train(shards, tmp_path / "full", CFG, resume=False, progress=False)
+    assert full["step"] == 8
+    # "killed" after 4 steps (the checkpoint at step 4 is what survives), then resumed
+    train(shards, tmp_path / "cut", dataclasses.replace(CFG, steps=4), resume=False, progress=False)
+    s4 = torch.load(tmp_path / "cut" / "last.pt", weights_only=False)
+    assert s4["step"] == 4
+    s4["train_config"]["steps"] = 8  # the resumed command asks for 8 steps
+    train(shards, tmp_path / "cut", dataclasses.replace(CFG, steps=4, warmup=2), resume=True, progress=False)
+    assert torch.load(tmp_path / "cut" / "last.pt", weights_only=False)["step"] == 4  # nothing left to do
+    # resume to 8 with the same schedule as the uninterrupted run
+    cut = tmp_path / "cut2"
+    train(shards, cut, dataclasses.replace(CFG, steps=8), resume=False, progress=False, max_seconds=0.0)
+    first = torch.load(cut / "last.pt", weights_only=False)["step"]
+    assert 1 <= first < 8  # stopped early by the time limit, checkpoint written
+    out = train(shards, cut, CFG, resume=True, progress=False)
+    assert out["step"] == 8
+    a = torch.load(tmp_path / "full" / "last.pt", weights_only=False)
+    b = torch.load(cut / "last.pt", weights_only=False)
+    for k in a["model"]:
+        np.testing.assert_allclose(b["model"][k], a["model"][k], atol=1e-6, err_msg=k)
+    for k in a["ema"]:
+        np.testing.assert_allclose(b["ema"][k], a["ema"][k], atol=1e-6, err_msg=k)
+    log = [json.loads(line) for line in (tmp_path / "full" / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in log] == [2, 4, 6, 8] and all(np.isfinite(r["loss_l2"]) for r in log)
+
+
+def test_checkpoint_rebuilds_the_model_and_publishes(shards, tmp_path):
+    train(shards, tmp_path / "run", CFG, resume=False, progress=False)
+    ck = tmp_path / "run" / "last.pt"
+    loaded = load_checkpoint(ck)
+    s = torch.load(ck, weights_only=False)
+    assert loaded.config.to_dict() == s["model_config"] and loaded.meta["step"] == 8
+    for k, v in loaded.model.state_dict().items():
+        assert torch.equal(v, s["ema"][k])
+    raw = load_checkpoint(ck, weights="model")
+    assert any(not torch.equal(raw.model.state_dict()[k], s["ema"][k]) for k in s["ema"])
+    pub = publish(ck, tmp_path / "pub.pt", metrics={"chamfer_median": 0.5})
+    assert pub.stat().st_size < ck.stat().st_size / 2
+    lp = load_checkpoint(pub)
+    assert lp.meta["metrics"]["chamfer_median"] == 0.5 and lp.meta["kind"] == "published"
+    x, t, c = torch.randn(1, 20, 6), torch.tensor([50]), torch.randn(1, 30, 3)
+    with torch.no_grad():
+        np.testing.assert_allclose(lp.model(x, t, c), loaded.model(x, t, c), atol=5e-3)
+
+
+def test_bad_checkpoints_are_refused(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        load_checkpoint(tmp_path / "missing.pt")
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="cannot be read"):
+        load_checkpoint(bad)
+    torch.save({"hello": 1}, tmp_path / "foreign.pt")
+    with pytest.raises(ValueError, match="not a PolycubeNet checkpoint"):
+        load_checkpoint(tmp_path / "foreign.pt")
+
+
+def test_resume_refuses_another_model(shards, tmp_path):
+    train(shards, tmp_path / "r", dataclasses.replace(CFG, steps=2), resume=False, progress=False)
+    with pytest.raises(ValueError, match="another model config"):
+        train(shards, tmp_path / "r", dataclasses.replace(CFG, preset="cpu", steps=3), progress=False)
+
+
+def test_ddp_with_two_cpu_processes(shards, tmp_path):
+    run = tmp_path / "ddp"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29533",
+           "-m", "polycubenet.train", "--data", str(shards), "--out", str(run), "--preset", "tiny",
+           "--steps", "3", "--batch", "4", "--points", "32", "--warmup", "1", "--ckpt-every", "3",
+           "--log-every", "1", "--threads", "1", "--no-progress"]
+    p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-3000:]
+    s = torch.load(run / "last.pt", weights_only=False)
+    assert s["step"] == 3 and s["world_size"] == 2
+    assert len((run / "log.jsonl").read_text().splitlines()) == 3
+    assert load_checkpoint(run / "last.pt").meta["step"] == 3
