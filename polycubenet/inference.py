@@ -28,7 +28,10 @@ from .model.diffusion import from_network, to_network
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "polycubenet-cpu.pt"
 DEFAULT_POINT_BUDGET = 1 << 19  # condition + output points per batch
-DEFAULT_STEPS_CPU = 64  # DDIM steps when running on a CPU (stride 4 = 256 steps on a GPU)
+DEFAULT_STEPS_CPU = 32  # DDIM steps when running on a CPU (stride 4 = 256 steps on a GPU)
+#: point chunk at inference: past ~8k points a chunk's logits (heads x latents x chunk) fall out of
+#: cache and the streaming read gets slower per point (measured by benchmarks/bench_inference.py)
+MAX_CHUNK = 8192
 
 _CACHE: dict = {}
 
@@ -83,7 +86,7 @@ def _sample_batch(loaded: Loaded, conds: list[np.ndarray], n_out: int, seeds: li
     gens = [torch.Generator(device=dev).manual_seed(int(s)) for s in seeds]
     autocast = (lambda: torch.autocast("cuda", dtype=torch.bfloat16)) if dev.type == "cuda" else None
     x = diffusion.sample(model, cond, n_out, steps=steps, stride=stride, eta=eta, generator=gens,
-                         chunk=chunk or model.config.chunk, autocast=autocast, progress=progress)
+                         chunk=chunk or min(model.config.chunk, MAX_CHUNK), autocast=autocast, progress=progress)
     out = from_network(x, scale).cpu().numpy().astype(np.float32)
     return list(out)
 

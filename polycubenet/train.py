@@ -181,7 +181,8 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
     ckpt = run / "last.pt"
     if resume and ckpt.exists():
         s = torch.load(ckpt, map_location="cpu", weights_only=False)
-        if ModelConfig.from_dict(s["model_config"]) != mcfg:
+        saved = ModelConfig.from_dict(s["model_config"])
+        if dataclasses.replace(saved, chunk=mcfg.chunk) != mcfg:  # chunk is an inference setting
             raise ValueError(f"{ckpt} was trained with another model config; use a new --run folder")
         model.load_state_dict(s["model"])
         ema.load_state_dict(s["ema"])

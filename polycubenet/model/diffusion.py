@@ -182,7 +182,7 @@ class Diffusion:
         eta: float = 0.0,
         generator: torch.Generator | list | None = None,
         chunk: int | None = None,
-        clip: float | None = 1.5,
+        clip: float | None = 1.0,
         autocast: Callable | None = None,
         progress: Callable[[int, int], None] | None = None,
     ) -> torch.Tensor:
