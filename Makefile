@@ -17,7 +17,7 @@ test: $(STAMP)
 	$(PY) -m pytest -q
 
 demo: $(STAMP)
-	$(PY) -m polycubenet.demo examples/parts -o $(OUT) --synthetic 3
+	$(VENV)/bin/polycubenet mesh examples/parts -o $(OUT) --formats vtu,inp --hexes 3000 --polycube-points 8192
 
 examples: $(STAMP)
 	$(PY) scripts/make_examples.py

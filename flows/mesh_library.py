@@ -1,0 +1,396 @@
+"""``mesh_library``: mesh every part under some folders into ``<out>/``, overnight-safe.
+
+discover (folders, globs, every supported format) → load + sample per part → the polycube
+cloud (the diffusion model in batches packed by resolution under a point budget, routed to
+a GPU worker when the Dask cluster has one; or a per-part source: ``oracle`` sidecars,
+``classical``) → cleanup + extraction → registration → partition + pullback → report +
+export, per part on the flow's task runner (a local Dask cluster by default, a scheduler
+address for a real one) → the classical fallback for a part whose polycube fails
+validation (when ``polycubenet.classical`` exists) → ``manifest.json``, ``report.html`` and
+Prefect artifacts (a markdown artifact per part, a summary table, a progress bar updated
+as parts finish).
+
+Every stage is a cached task (:mod:`tasks.mesh`) keyed on the part's content hash, the
+stage's parameters and its version, with Prefect's records kept in
+``<work>/.prefect-results``: a re-run (the same folder, ``retry_failed``, ``scan_drops``, a
+run after a crash) recomputes only what changed or never finished.  A part that fails with
+a ``PartError`` / ``PolycubeError`` is recorded as failed (stage and error in the manifest);
+the batch goes on and the flow completes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import queue
+import re
+import time
+from pathlib import Path
+from typing import Callable
+
+from prefect import flow, get_run_logger
+from prefect.context import FlowRunContext
+from prefect_dask import DaskTaskRunner
+
+from polycubenet import library
+from polycubenet.errors import PartError, PolycubeError
+from polycubenet.pipeline import PipelineConfig
+from tasks import mesh as T
+from tasks.common import results_dir
+
+from .runners import dask_runner, gpu_workers, prepare_dask
+
+#: callables ``hook(event: dict)`` called in the flow's process as parts finish (the CLI's progress bar)
+PROGRESS_HOOKS: list[Callable[[dict], None]] = []
+
+@dataclasses.dataclass
+class _Part:
+    path: Path
+    name: str
+    hash: str
+    keys: dict
+    sources: list
+    records: dict = dataclasses.field(default_factory=dict)
+    status: str = "pending"
+    stage: str = "load_sample"
+    error: str | None = None
+    fallback: str | None = None
+
+    @property
+    def source(self) -> str:
+        return self.sources[0]
+
+
+def _slug(name: str) -> str:
+    return re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-")[:60] or "part"
+
+
+@flow(name="mesh-library", task_runner=dask_runner(), log_prints=True)
+def mesh_library(
+    inputs: list[str],
+    out: str,
+    formats: list[str] = ("vtu",),
+    polycube: str = "learned",
+    fallback: bool = True,
+    n_sample: int = 4096,
+    n_polycube: int = 16384,
+    n_register: int = 4096,
+    target_hexes: int | None = 5000,
+    target_size: float | None = None,
+    seed: int = 0,
+    checkpoint: str | None = None,
+    steps: int | None = None,
+    point_budget: int | None = None,
+    device: str | None = None,
+    work: str | None = None,
+    load_kw: dict | None = None,
+    artifacts: bool = True,
+    merge: bool = True,
+) -> dict:
+    """Mesh the parts named by ``inputs`` into ``out`` (see the module docstring).
+
+    Parameters
+    ----------
+    inputs : files, folders or glob patterns
+    out : output folder (``<out>/<part>/hex.<fmt>``, ``manifest.json``, ``report.html``)
+    formats : hex formats among vtu, vtk, mesh, inp, msh, bdf
+    polycube : ``learned`` (the model), ``oracle`` (synthetic parts' sidecars), ``classical``
+    fallback : try the classical construction where the polycube fails validation
+    n_sample, n_polycube, n_register, target_hexes, target_size, seed : :class:`PipelineConfig`
+    checkpoint, steps, point_budget, device : the model (``polycube="learned"``; budget: condition +
+        output points of one generation batch, default ``inference.DEFAULT_POINT_BUDGET``)
+    work : stage files and cache records (default ``<out>/.work``)
+    merge : keep the manifest rows of parts not in this run
+
+    Returns
+    -------
+    dict : ``out``, ``manifest``, ``report``, ``counts`` and ``computed`` / ``reused`` stage counts
+    """
+    logger = get_run_logger()
+    t_start = time.perf_counter()
+    out_p = Path(out).resolve()
+    work_p = Path(work).resolve() if work else out_p / ".work"
+    formats = [f.lstrip(".").lower() for f in formats]
+    bad = [f for f in formats if f not in library.HEX_FORMATS]
+    if bad:
+        raise ValueError(f"unknown hex formats {bad}; expected some of {library.HEX_FORMATS}")
+    if polycube not in ("learned", "oracle", "classical"):
+        raise ValueError(f"unknown polycube source {polycube!r}; expected learned, oracle or classical")
+    config = PipelineConfig(n_sample=n_sample, n_polycube=n_polycube, n_register=n_register,
+                            target_hexes=target_hexes, target_size=target_size, seed=seed)
+    swept = library.sweep_partials(out_p, work_p, before=time.time())
+    if swept:
+        logger.info(f"removed {swept} partial files left by an interrupted run")
+
+    if polycube == "learned" and checkpoint is None:
+        from polycubenet.inference import DEFAULT_CHECKPOINT
+
+        checkpoint = str(DEFAULT_CHECKPOINT)
+    if polycube == "learned" and not Path(checkpoint).is_file():
+        raise FileNotFoundError(f"model checkpoint {checkpoint} not found: pass checkpoint=..., or polycube='classical'")
+    paths = library.discover(inputs)
+    hashes = [library.file_hash(p) for p in paths]
+    names = library.part_names(paths, hashes)
+    sources = [polycube] + (["classical"] if fallback and polycube != "classical" and library.classical_available() else [])
+    parts: list[_Part] = []
+    for p, h, n in zip(paths, hashes, names):
+        params = library.stage_params(config, polycube=polycube,
+                                      polycube_extra=library.source_extra(polycube, p, checkpoint),
+                                      load_kw=load_kw, formats=formats, out_dir=str(out_p / n))
+        parts.append(_Part(p, n, h, library.chain_keys(h, params), list(sources)))
+    logger.info(f"{len(parts)} parts under {list(inputs)}; polycube source {' -> '.join(sources)}; out {out_p}")
+
+    ctx = FlowRunContext.get()
+    runner = ctx.task_runner if ctx else None
+    prepare_dask(runner)
+    on_dask = isinstance(runner, DaskTaskRunner)
+    run_id = str(ctx.flow_run.id) if ctx and ctx.flow_run else None
+    result_storage = results_dir(work_p)
+    result_storage.mkdir(parents=True, exist_ok=True)
+    tasks = {name: getattr(T, name).with_options(result_storage=result_storage) for name in
+             ("load_sample", "polycube_cloud", "cleanup_extract", "register", "partition_pullback", "report_export")}
+    done_q: "queue.Queue" = queue.Queue()
+    pending: dict = {}
+    progress = _Progress(len(parts), artifacts)
+    gen_pool: list[_Part] = []
+    loads_left = len(parts)
+
+    def path_of(part: _Part, stage: str) -> str:
+        return str(library.stage_path(work_p, part.hash, stage, part.keys[stage]))
+
+    def submit(part: _Part, stage: str, task, **kw):
+        """Submit a stage; a stale cache record (its file gone) is refreshed, not trusted."""
+        if stage == "export":
+            fresh = library.load_json(Path(kw["out_dir"]) / "result.json").get("key") == part.keys[stage]
+        else:
+            fresh = Path(kw["dest"]).exists()
+        if not fresh:
+            task = task.with_options(refresh_cache=True)
+        part.stage = stage
+        if on_dask:  # the most advanced part first: parts finish one after another, not all at the end
+            import dask
+
+            with dask.annotate(priority=library.STAGES.index(stage)):
+                fut = task.submit(key=part.keys[stage], name=part.name, **kw)
+        else:
+            fut = task.submit(key=part.keys[stage], name=part.name, **kw)
+        pending[fut] = (part, stage)
+        fut.add_done_callback(done_q.put)
+
+    def start_polycube(part: _Part):
+        loaded = part.records["load_sample"]["path"]
+        if part.source == "learned":
+            if Path(path_of(part, "polycube")).exists():
+                part.records["polycube"] = {"stage": "polycube", "path": path_of(part, "polycube"), "seconds": 0.0,
+                                            "flow_run": "earlier", "finished": time.time()}
+                start_extract(part)
+            else:
+                gen_pool.append(part)
+        else:
+            submit(part, "polycube", tasks["polycube_cloud"], kind=part.source, path=str(part.path), loaded=loaded,
+                   dest=path_of(part, "polycube"), config=config)
+
+    def start_extract(part: _Part):
+        submit(part, "extract", tasks["cleanup_extract"], cloud=part.records["polycube"]["path"],
+               loaded=part.records["load_sample"]["path"], dest=path_of(part, "extract"), config=config)
+
+    def flush_generation(final: bool):
+        nonlocal gen_pool
+        if not gen_pool:
+            return
+        from polycubenet import inference
+
+        budget = point_budget or inference.DEFAULT_POINT_BUDGET
+        if not final and len(gen_pool) * (config.n_sample + config.n_polycube) < budget:
+            return
+        batches = inference.plan_batches([config.n_sample] * len(gen_pool), [config.n_polycube] * len(gen_pool),
+                                         budget)
+        annotate = gpu_workers(runner) > 0
+        for i, idx in enumerate(batches):
+            members = [gen_pool[j] for j in idx]
+            kw = dict(loaded=[m.records["load_sample"]["path"] for m in members],
+                      dests=[path_of(m, "polycube") for m in members], n_out=[config.n_polycube] * len(members),
+                      key="+".join(m.keys["polycube"] for m in members), checkpoint=checkpoint, steps=steps,
+                      seed=seed, device=device, point_budget=budget,
+                      name=f"{members[0].name}+{len(members) - 1}")
+            if annotate:
+                import dask
+
+                with dask.annotate(resources={"GPU": 1}, priority=1):
+                    fut = T.generate_batch.submit(**kw)
+            else:
+                fut = T.generate_batch.submit(**kw)
+            for m in members:
+                m.stage = "polycube"
+            pending[fut] = (members, "generate")
+            fut.add_done_callback(done_q.put)
+        gen_pool = []
+
+    rows_by_name: dict = {}
+
+    def finish(part: _Part, status: str, error: str | None = None):
+        part.status, part.error = status, error
+        rows_by_name[part.name] = row = _row(part, out_p, run_id)
+        if artifacts:
+            _part_artifact(row, out_p)
+        progress.step(part)
+        for hook in PROGRESS_HOOKS:
+            hook({"part": part.name, "status": status, "stage": part.stage, "error": error,
+                  "done": progress.done, "failed": progress.failed, "total": progress.total})
+
+    def fail_or_fall_back(part: _Part, stage: str, exc: BaseException):
+        msg = f"{type(exc).__name__}: {exc}"
+        if isinstance(exc, PolycubeError) and stage in ("polycube", "extract") and len(part.sources) > 1:
+            logger.warning(f"{part.name}: {part.source} polycube rejected at {stage} ({exc}); trying {part.sources[1]}")
+            part.fallback = f"{part.source} polycube rejected at {stage}: {exc}"
+            part.sources = part.sources[1:]
+            params = library.stage_params(config, polycube=part.source,
+                                          polycube_extra=library.source_extra(part.source, part.path, checkpoint),
+                                          load_kw=load_kw, formats=formats, out_dir=str(out_p / part.name))
+            part.keys = library.chain_keys(part.hash, params)
+            for s in ("polycube", "extract"):
+                part.records.pop(s, None)
+            start_polycube(part)
+            return
+        if not isinstance(exc, (PartError, PolycubeError)):
+            logger.error(f"{part.name}: unexpected failure at {stage}: {msg}")
+        finish(part, "failed", msg)
+
+    for part in parts:
+        submit(part, "load_sample", tasks["load_sample"], path=str(part.path), dest=path_of(part, "load_sample"),
+               load_kw=load_kw, config=config)
+
+    while pending:
+        fut = done_q.get()
+        if fut not in pending:
+            continue
+        who, stage = pending.pop(fut)
+        value = fut.result(raise_on_failure=False)
+        if stage == "generate":
+            for m in who:
+                if isinstance(value, BaseException):
+                    fail_or_fall_back(m, "polycube", value)
+                else:
+                    m.records["polycube"] = next(r for r in value if Path(r["path"]) == Path(path_of(m, "polycube")))
+                    start_extract(m)
+            continue
+        part = who
+        if stage == "load_sample":
+            loads_left -= 1
+        if isinstance(value, BaseException):
+            fail_or_fall_back(part, stage, value)
+        else:
+            part.records[stage] = value
+            loaded, extracted = part.records["load_sample"]["path"], part.records.get("extract", {}).get("path")
+            if stage == "load_sample":
+                start_polycube(part)
+            elif stage == "polycube":
+                start_extract(part)
+            elif stage == "extract":
+                submit(part, "register", tasks["register"], extracted=extracted, loaded=loaded,
+                       dest=path_of(part, "register"), config=config)
+            elif stage == "register":
+                submit(part, "pullback", tasks["partition_pullback"], extracted=extracted,
+                       corr=value["path"], loaded=loaded, dest=path_of(part, "pullback"), config=config)
+            elif stage == "pullback":
+                submit(part, "export", tasks["report_export"], hexc=value["path"], extracted=extracted,
+                       loaded=loaded, out_dir=str(out_p / part.name), formats=formats)
+            elif stage == "export":
+                finish(part, "meshed")
+        if polycube == "learned" or any(p.source == "learned" for p in gen_pool):
+            flush_generation(final=loads_left == 0)
+
+    rows = [rows_by_name.get(p.name) or _row(p, out_p, run_id) for p in parts]
+    computed = sum(len(r["computed"]) for r in rows)
+    reused = sum(len(r["reused"]) for r in rows)
+    old = library.read_manifest(out_p)["parts"] if merge else []
+    all_rows = library.merge_rows(old, rows)
+    parameters = {"inputs": [str(i) for i in inputs], "formats": formats, "polycube": polycube, "fallback": fallback,
+                  "config": config, "checkpoint": checkpoint, "steps": steps, "work": str(work_p),
+                  "load_kw": load_kw or {}}
+    manifest = library.write_manifest(out_p, all_rows, parameters=parameters,
+                                      extra={"last_run": {"flow_run": run_id, "parts": len(rows),
+                                                          "seconds": round(time.perf_counter() - t_start, 2),
+                                                          "computed_stages": computed, "reused_stages": reused}})
+    report = library.write_report_html(out_p, all_rows)
+    if artifacts:
+        from prefect.artifacts import create_table_artifact
+
+        create_table_artifact(table=library.summary_rows(all_rows), key="mesh-library-summary",
+                              description=f"{out_p}: one row per part")
+    counts = {s: sum(r["status"] == s for r in rows) for s in ("meshed", "failed")}
+    logger.info(f"done: {counts['meshed']} meshed, {counts['failed']} failed; stages computed {computed}, "
+                f"reused {reused}; manifest {manifest}")
+    return {"out": str(out_p), "manifest": str(manifest), "report": str(report), "counts": counts,
+            "computed": computed, "reused": reused, "rows": rows}
+
+
+def _row(part: _Part, out: Path, run_id: str | None) -> dict:
+    """One manifest row (plain types)."""
+    row = {
+        "name": part.name, "path": str(part.path), "hash": part.hash, "status": part.status,
+        "stage": "export" if part.status == "meshed" else part.stage, "error": part.error,
+        "provenance": None, "fallback": part.fallback,
+        "timings": {s: r["seconds"] for s, r in part.records.items()},
+        "computed": [s for s, r in part.records.items() if r.get("flow_run") == run_id],
+        "reused": [s for s, r in part.records.items() if r.get("flow_run") != run_id],
+        "quality": None, "files": [], "keys": dict(part.keys), "out": part.name,
+    }
+    if part.status == "meshed":
+        d = out / part.name
+        res = library.load_json(d / "result.json")
+        q = library.load_json(d / "quality.json")
+        row["provenance"] = res.get("provenance")
+        row["quality"] = {"hexes": q.get("hex_count"), "sj_min": q.get("sj_min"), "sj_avg": q.get("sj_avg"),
+                          "sj_p01": q.get("sj_p01"), "inverted": q.get("inverted_count"),
+                          "degenerate": q.get("degenerate_count"), "valid": q.get("valid"),
+                          "hausdorff": (q.get("surface") or {}).get("hausdorff"), "warnings": q.get("warnings")}
+        row["files"] = sorted(f.name for f in d.iterdir() if f.is_file() and not f.name.startswith("."))
+    elif "polycube" in part.records:
+        row["provenance"] = part.source
+    return row
+
+
+class _Progress:
+    """The progress artifact, updated as parts finish."""
+
+    def __init__(self, total: int, enabled: bool):
+        self.total, self.done, self.failed = total, 0, 0
+        self.artifact_id = None
+        if enabled:
+            from prefect.artifacts import create_progress_artifact
+
+            self.artifact_id = create_progress_artifact(progress=0.0, key="mesh-library-progress",
+                                                        description=f"parts finished of {total}")
+
+    def step(self, part: _Part):
+        self.done += 1
+        self.failed += part.status == "failed"
+        if self.artifact_id is not None:
+            from prefect.artifacts import update_progress_artifact
+
+            update_progress_artifact(self.artifact_id, progress=100.0 * self.done / max(1, self.total),
+                                     description=f"{self.done}/{self.total} parts finished, {self.failed} failed")
+
+
+def _part_artifact(r: dict, out: Path) -> None:
+    """The markdown artifact of one finished part: its quality table and a picture."""
+    from prefect.artifacts import create_markdown_artifact
+
+    q = r.get("quality") or {}
+    lines = [f"# {r['name']}: {r['status']}", "", f"`{r['path']}`", "",
+             "| field | value |", "|---|---|",
+             f"| status | {r['status']} |", f"| stage reached | {r['stage']} |",
+             f"| polycube | {r.get('provenance') or ''} |"]
+    if r.get("fallback"):
+        lines.append(f"| fallback | {r['fallback'].replace('|', '/')} |")
+    if r.get("error"):
+        lines.append(f"| error | {r['error'].replace('|', '/')} |")
+    for k in ("hexes", "sj_min", "sj_avg", "sj_p01", "inverted", "degenerate", "valid", "hausdorff"):
+        if k in q:
+            lines.append(f"| {k} | {q[k]} |")
+    lines.append(f"| time s | {round(sum(r['timings'].values()), 2)} (reused: {', '.join(r['reused']) or 'none'}) |")
+    uri = library.thumbnail_data_uri(out / r["name"] / "preview.png") if r["status"] == "meshed" else None
+    if uri:
+        lines += ["", f"![preview]({uri})"]
+    create_markdown_artifact(markdown="\n".join(lines), key=f"part-{_slug(r['name'])}",
+                             description=f"{r['name']}: {r['status']}")

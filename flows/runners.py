@@ -1,0 +1,85 @@
+"""Task runners for the flows: a Dask cluster (local by default, or a scheduler address).
+
+A local cluster's worker processes must talk to the same Prefect API as the flow: with
+the embedded (ephemeral) server nothing tells them where it is, and each would start its
+own (PLATFORM.md).  :func:`prepare_dask` passes the flow's API URL (and the thread
+limits) into the workers' environment just before the cluster starts.
+"""
+
+from __future__ import annotations
+
+import os
+
+from prefect.task_runners import ThreadPoolTaskRunner
+from prefect_dask import DaskTaskRunner
+
+#: environment the local Dask workers inherit from the flow's process when set there
+_PASS_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "PREFECT_HOME",
+             "PREFECT_SERVER_ANALYTICS_ENABLED", "DO_NOT_TRACK", "VTK_DEFAULT_OPENGL_WINDOW")
+
+
+def dask_runner(workers: int | None = None, address: str | None = None, threads_per_worker: int = 1) -> DaskTaskRunner:
+    """A DaskTaskRunner on ``address`` (a running scheduler: its workers must import this
+    project; GPU workers started with ``--resources GPU=1``) or on a new local cluster of
+    ``workers`` single-threaded processes (default 1)."""
+    if address:
+        return DaskTaskRunner(address=address)
+    return DaskTaskRunner(cluster_kwargs={"n_workers": int(workers or 1), "threads_per_worker": threads_per_worker,
+                                          "processes": True, "dashboard_address": ":0"})
+
+
+def make_runner(workers: int | None = None, address: str | None = None, kind: str = "dask"):
+    """``kind="dask"`` (:func:`dask_runner`) or ``"threads"`` (a thread pool, for tests)."""
+    if kind == "threads":
+        return ThreadPoolTaskRunner(max_workers=int(workers or 1))
+    if kind != "dask":
+        raise ValueError(f"unknown task runner kind {kind!r}; expected 'dask' or 'threads'")
+    return dask_runner(workers, address)
+
+
+def current_api_url() -> str | None:
+    """The Prefect API this process talks to: ``PREFECT_API_URL`` or the running embedded server."""
+    from prefect.settings import get_current_settings
+
+    url = get_current_settings().api.url
+    if url:
+        return str(url)
+    try:
+        from prefect.server.api.server import SubprocessASGIServer
+
+        server = SubprocessASGIServer._instances.get(None)
+        if server is not None and server.running:
+            return server.api_url
+    except ImportError:  # pragma: no cover
+        pass
+    return None
+
+
+def prepare_dask(runner) -> None:
+    """Before a local Dask cluster starts (first submit), give its workers the flow's API URL
+    and thread limits.  No-op for other runners, a scheduler address or a started cluster."""
+    if not isinstance(runner, DaskTaskRunner) or runner.address or runner._client is not None:
+        return
+    env = dict(runner.cluster_kwargs.get("env") or {})
+    url = current_api_url()
+    if url:
+        env.setdefault("PREFECT_API_URL", url)
+    for k in _PASS_ENV:
+        if k in os.environ:
+            env.setdefault(k, os.environ[k])
+    env.setdefault("OMP_NUM_THREADS", "1")
+    runner.cluster_kwargs["env"] = env
+
+
+def gpu_workers(runner) -> int:
+    """How many workers of the runner's Dask cluster advertise a ``GPU`` resource (0 otherwise)."""
+    if not isinstance(runner, DaskTaskRunner):
+        return 0
+    try:
+        try:
+            info = runner.client.scheduler_info(n_workers=-1)
+        except TypeError:  # older distributed
+            info = runner.client.scheduler_info()
+    except Exception:  # noqa: BLE001 - no cluster reachable: no GPU routing
+        return 0
+    return sum(1 for w in info.get("workers", {}).values() if (w.get("resources") or {}).get("GPU", 0) > 0)

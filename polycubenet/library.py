@@ -1,0 +1,631 @@
+"""Meshing a whole library of parts: the per-stage file contract that the orchestration runs.
+
+The Prefect tasks (``tasks/``) and flows (``flows/``) are thin; everything they do to
+a part lives here, as plain functions over paths, so it runs (and is tested) without
+an orchestrator:
+
+* discovery (:func:`discover`): folders, globs and files of every supported format;
+* content hashing and cache keys (:func:`file_hash`, :func:`stage_key`): a stage's key
+  is the hash of its upstream key, its parameters and its version string, and the
+  first key is the hash of the part file's bytes, so a re-run reuses exactly the
+  stages whose inputs and parameters did not change;
+* the stages, each writing its result atomically under ``<work>/<part-hash>/`` as
+  ``<stage>-<key>.npz`` and returning the path (:func:`load_sample`,
+  :func:`polycube_cloud`, :func:`write_generated`, :func:`cleanup_extract`,
+  :func:`register`, :func:`partition_pullback`, :func:`report_export`) -- the same
+  order as :func:`polycubenet.pipeline.mesh_surface` (extraction before registration:
+  an invalid polycube is found before CPD is paid for, and the classical fallback
+  then starts from the part, not from a registration it would throw away);
+* polycube sources by name (:func:`make_source`): ``oracle`` (a synthetic part's
+  ground-truth sidecar ``X.polycube.npz``), ``classical`` (``polycubenet.classical``,
+  when present); the learned model is run in batches by the flow
+  (``polycubenet.inference``);
+* the manifest (``manifest.json``, one row per part) and ``report.html``.
+
+Nothing here imports Prefect or Dask.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import glob
+import hashlib
+import html
+import json
+import os
+import time
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+
+from .atomic import write_json, write_text
+from .data import HexMesh, Part, Polycube, PolycubeCloud, SurfaceSample
+from .errors import PolycubeError
+from .pipeline import OracleSource, PartResult, PipelineConfig
+
+#: part files the library reads (``polycubenet.io.load_part``)
+CAD_SUFFIXES = (".step", ".stp", ".iges", ".igs")
+MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".glb")
+PART_SUFFIXES = CAD_SUFFIXES + MESH_SUFFIXES
+#: hex mesh formats ``polycubenet.io.write_hex`` writes
+HEX_FORMATS = ("vtu", "vtk", "mesh", "inp", "msh", "bdf")
+#: the sidecar next to a synthetic part ``X.stl`` holding its ground-truth polycube
+SIDECAR_SUFFIX = ".polycube.npz"
+
+#: bump a stage's version when its code changes what it writes: every key downstream changes
+STAGE_VERSIONS = {
+    "load_sample": "1",
+    "polycube": "1",
+    "extract": "2",  # 2: carries the classical exact map
+    "register": "2",  # 2: the classical exact map replaces CPD
+    "pullback": "2",  # 2: classical pullback as in pipeline.mesh_surface
+    "export": "1",
+}
+#: stage names in pipeline order (what ``stage reached`` in the manifest refers to)
+STAGES = ("load_sample", "polycube", "extract", "register", "pullback", "export")
+MANIFEST = "manifest.json"
+REPORT = "report.html"
+
+
+# --------------------------------------------------------------------------- discovery
+
+
+def discover(inputs: Iterable[str | os.PathLike], *, prefer_cad: bool = True) -> list[Path]:
+    """Part files named by ``inputs``: files, folders (searched recursively) and glob patterns.
+
+    Only the suffixes in :data:`PART_SUFFIXES` are kept from folders and globs (a file named
+    explicitly is kept whatever its suffix, so that ``load_part`` reports it).  With
+    ``prefer_cad`` a mesh file whose stem also exists as a STEP/IGES file in the same folder
+    is skipped, so a part exported both ways is meshed once.  Sorted, without duplicates.
+    Raises ``FileNotFoundError`` for an input that is neither a file, a folder nor a
+    pattern that matches something.
+    """
+    found: list[Path] = []
+    for item in inputs:
+        s = str(item)
+        p = Path(s)
+        if p.is_dir():
+            found += [q for q in sorted(p.rglob("*")) if q.is_file() and q.suffix.lower() in PART_SUFFIXES]
+        elif p.is_file():
+            found.append(p)
+        elif glob.has_magic(s):
+            matches = [Path(m) for m in sorted(glob.glob(s, recursive=True))]
+            found += [q for q in matches if q.is_file() and q.suffix.lower() in PART_SUFFIXES]
+            found += [r for q in matches if q.is_dir() for r in discover([q], prefer_cad=False)]
+        else:
+            raise FileNotFoundError(f"{s}: no such file, folder or matching pattern")
+    if prefer_cad:
+        cad = {(q.parent, q.stem) for q in found if q.suffix.lower() in CAD_SUFFIXES}
+        found = [q for q in found if q.suffix.lower() in CAD_SUFFIXES or (q.parent, q.stem) not in cad]
+    return sorted(dict.fromkeys(q.resolve() for q in found))
+
+
+def part_names(paths: list[Path], hashes: list[str]) -> list[str]:
+    """Output folder name of each part: its stem, with 8 hash characters added to every stem
+    that two different parts share (``bracket.step`` and ``sub/bracket.stl``)."""
+    stems = [p.stem for p in paths]
+    count: dict[str, set] = {}
+    for s, h in zip(stems, hashes):
+        count.setdefault(s, set()).add(h)
+    return [s if len(count[s]) == 1 else f"{s}-{h[:8]}" for s, h in zip(stems, hashes)]
+
+
+# --------------------------------------------------------------------------- hashing and keys
+
+
+def file_hash(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
+    """SHA-256 of a file's bytes (hex)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _plain(obj):
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {k: _plain(v) for k, v in dataclasses.asdict(obj).items()}
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in sorted(obj.items(), key=lambda kv: str(kv[0]))}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+def stable_hash(obj) -> str:
+    """SHA-256 of a JSON rendering of ``obj`` (dataclasses, dicts, lists, numbers, strings)."""
+    return hashlib.sha256(json.dumps(_plain(obj), sort_keys=True, default=repr).encode()).hexdigest()
+
+
+def stage_key(stage: str, upstream: str, params) -> str:
+    """Cache key of ``stage``: hash of its version, its parameters and the upstream key
+    (for the first stage, the part file's content hash).  24 hex characters."""
+    if stage not in STAGE_VERSIONS:
+        raise ValueError(f"unknown stage {stage!r}; expected one of {STAGES}")
+    return stable_hash({"stage": stage, "version": STAGE_VERSIONS[stage], "upstream": upstream, "params": params})[:24]
+
+
+def stage_params(config: PipelineConfig, *, polycube: str = "oracle", polycube_extra=None,
+                 load_kw: dict | None = None, formats=("vtu",), out_dir: str | None = None) -> dict:
+    """The parameters each stage's key depends on (only those: changing the hex size
+    re-runs partition and later, never sampling or generation)."""
+    return {
+        "load_sample": {"n_sample": config.n_sample, "seed": config.seed, "load": dict(load_kw or {})},
+        "polycube": {"source": polycube, "n_polycube": config.n_polycube, "seed": config.seed, "extra": polycube_extra},
+        "extract": {"extract": config.extract},
+        "register": {"n_register": config.n_register, "seed": config.seed},
+        "pullback": {"target_hexes": config.target_hexes, "target_size": config.target_size, "pullback": config.pullback},
+        "export": {"formats": sorted(formats), "out": out_dir},
+    }
+
+
+def chain_keys(part_hash: str, params: dict, *, source: str | None = None) -> dict[str, str]:
+    """Keys of every stage for one part; ``source`` overrides the polycube source name
+    (the fallback chain: the classical cloud has its own keys from ``polycube`` on)."""
+    keys: dict[str, str] = {}
+    up = part_hash
+    for stage in STAGES:
+        p = params[stage]
+        if stage == "polycube" and source is not None:
+            p = {**p, "source": source}
+        up = keys[stage] = stage_key(stage, up, p)
+    return keys
+
+
+def stage_path(work: str | os.PathLike, part_hash: str, stage: str, key: str, suffix: str = ".npz") -> Path:
+    """Where a stage's result lives: ``<work>/<part-hash[:16]>/<stage>-<key>.npz``."""
+    return Path(work) / part_hash[:16] / f"{stage}-{key}{suffix}"
+
+
+def sweep_partials(*folders: str | os.PathLike, before: float | None = None) -> int:
+    """Remove the ``.tmp-*`` files a killed run left behind (``atomic.atomic_path``) that were last
+    written before ``before`` (a ``time.time()``; default now); return how many.  Meant for a
+    folder that one run writes at a time (what the deployments' concurrency limits ensure)."""
+    before = time.time() if before is None else before
+    n = 0
+    for folder in folders:
+        folder = Path(folder)
+        if folder.is_dir():
+            for tmp in folder.rglob(".tmp-*"):
+                try:
+                    if tmp.is_file() and tmp.stat().st_mtime < before:
+                        tmp.unlink()
+                        n += 1
+                except FileNotFoundError:  # renamed or removed meanwhile by its writer
+                    pass
+    return n
+
+
+# --------------------------------------------------------------------------- polycube sources
+
+
+def sidecar_path(part: str | os.PathLike) -> Path:
+    """``X.polycube.npz`` next to ``X.<ext>``."""
+    p = Path(part)
+    return p.with_name(p.stem + SIDECAR_SUFFIX)
+
+
+def polycube_to_frame(poly: Polycube, transform) -> Polycube:
+    """A polycube given in a part's file coordinates, in the part's canonical frame.
+
+    ``transform`` (:class:`polycubenet.frame.Transform`) must rotate by a signed axis
+    permutation (an axis-aligned polycube stays axis-aligned); anything else raises
+    :class:`PolycubeError`.
+    """
+    R = np.asarray(transform.rotation, float)
+    perm = np.abs(R).argmax(axis=1)  # canonical axis i <- file axis perm[i]
+    signs = np.sign(R[np.arange(3), perm])
+    if sorted(perm.tolist()) != [0, 1, 2] or np.abs(np.abs(R[np.arange(3), perm]) - 1).max() > 1e-6:
+        raise PolycubeError("the oracle polycube is not axis-aligned in the part's canonical frame")
+    grids_file = [np.asarray(poly.xs, float), np.asarray(poly.ys, float), np.asarray(poly.zs, float)]
+    occ = np.asarray(poly.occupancy, bool).transpose(perm)
+    grids = []
+    for i in range(3):
+        g = signs[i] * (grids_file[perm[i]] - transform.center[perm[i]]) * transform.scale
+        if signs[i] < 0:
+            g = g[::-1]
+            occ = np.flip(occ, axis=i)
+        grids.append(g)
+    return Polycube(*grids, np.ascontiguousarray(occ), meta=dict(poly.meta))
+
+
+@dataclasses.dataclass
+class SidecarOracle:
+    """Polycube source for a synthetic part: its sidecar's polycube (file coordinates) moved
+    into the canonical frame, sampled with noise and outliers by :class:`OracleSource`."""
+
+    sidecar: Path
+    transform: object
+    noise: float = 0.005
+    outliers: float = 0.02
+
+    def __call__(self, sample, V, F, config):
+        if not Path(self.sidecar).is_file():
+            raise PolycubeError(f"no oracle polycube: {self.sidecar} does not exist")
+        poly = polycube_to_frame(Polycube.load(self.sidecar), self.transform)
+        return OracleSource(poly, noise=self.noise, outliers=self.outliers)(sample, V, F, config)
+
+
+def classical_available() -> bool:
+    """Whether the classical polycube construction (``polycubenet.classical``) is installed."""
+    import importlib.util
+
+    return importlib.util.find_spec("polycubenet.classical") is not None
+
+
+def make_source(kind: str, part_path: str | os.PathLike, transform):
+    """A per-part polycube source by name: ``oracle`` or ``classical``.
+
+    (``learned`` is not made here: the flow runs the model in batches across parts.)
+    This is the one place the classical fallback plugs in.
+    """
+    if kind == "oracle":
+        return SidecarOracle(sidecar_path(part_path), transform)
+    if kind == "classical":
+        try:
+            from .classical import ClassicalSource
+        except ImportError as exc:
+            raise PolycubeError(f"the classical polycube construction is not available ({exc})") from exc
+        return ClassicalSource()
+    raise ValueError(f"unknown per-part polycube source {kind!r}; expected 'oracle' or 'classical'")
+
+
+def source_extra(kind: str, part_path: str | os.PathLike, checkpoint: str | os.PathLike | None = None) -> dict:
+    """What, besides the part, a polycube source's output depends on (for its cache key)."""
+    if kind == "oracle":
+        sc = sidecar_path(part_path)
+        return {"sidecar": file_hash(sc) if sc.is_file() else None}
+    if kind == "learned":
+        return {"checkpoint": file_hash(checkpoint) if checkpoint and Path(checkpoint).is_file() else str(checkpoint)}
+    return {}
+
+
+# --------------------------------------------------------------------------- the stages
+
+
+def load_sample(path: str | os.PathLike, dest: str | os.PathLike, config: PipelineConfig, load_kw: dict | None = None) -> Path:
+    """Load and validate the part, put it in its canonical frame, Poisson-disk sample it.
+
+    Writes one ``.npz`` at ``dest``: the canonical surface (``vertices``, ``faces``), the
+    sample (``points``, ``normals``, ``face_ids``, ``barycentrics``) and JSON metadata
+    (the part's ``meta`` and the ``transform`` back to file coordinates).  Raises PartError.
+    """
+    from .frame import canonicalize
+    from .io import load_part
+    from .sampling import poisson_disk
+
+    part = load_part(path, **(load_kw or {}))
+    Vc, T = canonicalize(part.vertices, part.faces)
+    sample = poisson_disk(Vc, part.faces, config.n_sample, seed=config.seed)
+    meta = {"part": part.meta, "transform": T.to_dict(), "name": Path(path).name}
+    return _save_arrays(dest, meta, vertices=Vc, faces=part.faces, points=sample.points, normals=sample.normals,
+                        face_ids=sample.face_ids, barycentrics=sample.barycentrics)
+
+
+def read_loaded(path: str | os.PathLike):
+    """``(Part in the canonical frame, SurfaceSample, Transform, meta)`` from a :func:`load_sample` file."""
+    from .frame import Transform
+
+    arrays, meta = _load_arrays(path)
+    part = Part(arrays["vertices"], arrays["faces"], meta=meta["part"])
+    sample = SurfaceSample(arrays["points"], arrays["normals"], arrays["face_ids"], arrays["barycentrics"])
+    return part, sample, Transform.from_dict(meta["transform"]), meta
+
+
+def polycube_cloud(kind: str, part_path: str | os.PathLike, loaded: str | os.PathLike, dest: str | os.PathLike,
+                   config: PipelineConfig) -> Path:
+    """Run a per-part polycube source (:func:`make_source`) on a loaded part; save the cloud."""
+    part, sample, T, _ = read_loaded(loaded)
+    cloud = make_source(kind, part_path, T)(sample, part.vertices, part.faces, config)
+    cloud.meta.setdefault("provenance", kind)
+    return cloud.save(dest)
+
+
+def write_generated(generated: np.ndarray, dest: str | os.PathLike, meta: dict) -> Path:
+    """Save one part's generated cloud ``(M, 6)`` (xyz + normals) as a PolycubeCloud."""
+    g = np.asarray(generated, dtype=np.float64)
+    if g.ndim != 2 or g.shape[1] != 6 or not np.isfinite(g).all():
+        raise PolycubeError(f"the model returned an unusable cloud (shape {g.shape}, finite {bool(np.isfinite(g).all())})")
+    n = np.linalg.norm(g[:, 3:], axis=1, keepdims=True)
+    normals = np.divide(g[:, 3:], n, out=np.zeros_like(g[:, 3:]), where=n > 0)
+    return PolycubeCloud(g[:, :3], normals, meta={"provenance": "learned", **meta}).save(dest)
+
+
+def cleanup_extract(cloud_path: str | os.PathLike, loaded: str | os.PathLike, dest: str | os.PathLike,
+                    config: PipelineConfig) -> Path:
+    """Outlier filter, then structure extraction (validated against the part's genus).
+
+    Writes the cleaned cloud and the polycube in one ``.npz``; raises PolycubeError when
+    the polycube fails validation.
+    """
+    from .cleanup import remove_outliers
+    from .structure import extract
+
+    cloud = PolycubeCloud.load(cloud_path)
+    _, _, _, meta = read_loaded(loaded)
+    P, N, _ = remove_outliers(cloud.points, cloud.normals)
+    poly = extract(P, N, genus=meta["part"].get("genus"), config=config.extract, part=meta["name"])
+    poly.meta["provenance"] = cloud.meta.get("provenance")
+    exact = _exact_map_arrays(cloud_path)
+    return _save_arrays(dest, {"polycube": poly.meta, "cloud": cloud.meta}, points=P, normals=N,
+                        xs=poly.xs, ys=poly.ys, zs=poly.zs, occupancy=poly.occupancy, **exact)
+
+
+_EXACT_MAP = ("polycube_vertices", "surface_vertices", "surface_faces")
+
+
+def _exact_map_arrays(path) -> dict:
+    """The exact polycube -> part map a classical cloud file carries (empty for other clouds)."""
+    with np.load(path, allow_pickle=False) as z:
+        if all(k in z.files for k in _EXACT_MAP):
+            return {k: z[k] for k in _EXACT_MAP}
+    return {}
+
+
+def _surface_map(arrays: dict):
+    from .classical import SurfaceMap
+
+    return SurfaceMap(np.asarray(arrays["polycube_vertices"], float), np.asarray(arrays["surface_faces"], np.int64),
+                      np.asarray(arrays["surface_vertices"], float))
+
+
+def read_extracted(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, Polycube, dict]:
+    arrays, meta = _load_arrays(path)
+    poly = Polycube(arrays["xs"], arrays["ys"], arrays["zs"], arrays["occupancy"], meta=meta["polycube"])
+    return arrays["points"], arrays["normals"], poly, meta["cloud"]
+
+
+def register(extracted: str | os.PathLike, loaded: str | os.PathLike, dest: str | os.PathLike, config: PipelineConfig) -> Path:
+    """Rigid + CPD registration of the cleaned cloud to the part sample (``registration.align``)."""
+    from .registration import align
+
+    arrays, _ = _load_arrays(extracted)
+    if all(k in arrays for k in _EXACT_MAP):
+        # the classical polycube knows its map to the part exactly: no registration
+        return _save_arrays(dest, {"method": "classical exact map"}, **{k: arrays[k] for k in _EXACT_MAP})
+    P, N, _, _ = read_extracted(extracted)
+    _, sample, _, _ = read_loaded(loaded)
+    rng = np.random.default_rng(config.seed + 5)
+    sub = rng.choice(len(P), size=min(config.n_register, len(P)), replace=False)
+    return align(sample, P[sub], N[sub]).save(dest)
+
+
+def partition_pullback(extracted: str | os.PathLike, corr: str | os.PathLike, loaded: str | os.PathLike,
+                       dest: str | os.PathLike, config: PipelineConfig) -> Path:
+    """Partition the polycube into hexes and pull them back onto the part (canonical frame)."""
+    from .hexmesh import partition
+    from .pullback import pull_back
+    from .registration import Correspondence
+
+    _, _, poly, _ = read_extracted(extracted)
+    part, _, _, _ = read_loaded(loaded)
+    if config.target_size is not None:
+        mesh_pc = partition(poly, target_size=config.target_size)
+    else:
+        mesh_pc = partition(poly, target_hexes=config.target_hexes)
+    arrays, _ = _load_arrays(corr)
+    if all(k in arrays for k in _EXACT_MAP):  # classical: the same pullback as pipeline.mesh_surface
+        from .pipeline import _pull_back_classical
+
+        return _pull_back_classical(mesh_pc, _surface_map(arrays), part.vertices, part.faces, config).save(dest)
+    c = Correspondence.load(corr)
+    return pull_back(mesh_pc, c.map_points, part.vertices, part.faces, config.pullback).save(dest)
+
+
+def report_export(hexc: str | os.PathLike, extracted: str | os.PathLike, loaded: str | os.PathLike,
+                  out_dir: str | os.PathLike, formats=("vtu",), *, key: str | None = None, name: str | None = None) -> Path:
+    """Mesh back to the part's own coordinates, quality report against the input surface,
+    and the output files (``hex.<fmt>``, ``quality.json``/``.png``, ``preview.png``,
+    ``polycube.npz``, ``result.json`` last).  ``name`` names the part in ``result.json`` (default:
+    the file name the loaded stage was made from; identical files share that stage).  Returns ``out_dir``."""
+    from .quality import quality_report
+
+    part, _, T, meta = read_loaded(loaded)
+    _, _, poly, cloud_meta = read_extracted(extracted)
+    mc = HexMesh.load(hexc)
+    mesh = HexMesh(T.inverse(mc.points), mc.hexes, mc.boundary, meta=dict(mc.meta))
+    Vo = T.inverse(part.vertices)
+    res = PartResult(name=name or meta["name"], status="meshed", stage="export", part_meta=meta["part"], mesh=mesh,
+                     polycube=poly, cloud=PolycubeCloud(np.zeros((0, 3)), np.zeros((0, 3)), meta=cloud_meta),
+                     report=quality_report(mesh, surface=(Vo, part.faces)))
+    out = Path(out_dir)
+    # result.json is written last by PartResult.write: its presence marks a complete output
+    (out / "result.json").unlink(missing_ok=True)
+    res.write(out, formats=tuple(formats))
+    row = json.loads((out / "result.json").read_text())
+    row["key"] = key
+    write_json(out / "result.json", row)
+    return out
+
+
+def _save_arrays(dest, meta: dict, **arrays) -> Path:
+    from .atomic import save_npz
+
+    meta_bytes = np.frombuffer(json.dumps(_plain(meta), sort_keys=True).encode(), dtype=np.uint8)
+    return save_npz(dest, __meta__=meta_bytes, **arrays)
+
+
+def _load_arrays(path) -> tuple[dict, dict]:
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files if k != "__meta__"}
+        meta = json.loads(bytes(z["__meta__"]).decode()) if "__meta__" in z.files else {}
+    return arrays, meta
+
+
+# --------------------------------------------------------------------------- synthetic libraries
+
+
+def write_synthetic_parts(out: str | os.PathLike, seeds: Iterable[int], *, scale: float = 100.0,
+                          offset=(40.0, -15.0, 5.0), suffix: str = ".stl") -> list[Path]:
+    """Write synthetic parts ``synth-<seed><suffix>`` (in mm: canonical shape × ``scale`` +
+    ``offset``) with their ground-truth sidecars ``synth-<seed>.polycube.npz`` in the same
+    file coordinates (:func:`polycubenet.synth.make_pair`; seeds >= 9000 are held out from
+    training).  Existing files are kept.  Returns the part paths."""
+    from .io import write_surface
+    from .synth import make_pair
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    off = np.asarray(offset, float)
+    paths = []
+    for seed in seeds:
+        path = out / f"synth-{seed}{suffix}"
+        if not (path.is_file() and sidecar_path(path).is_file()):
+            pair = make_pair(int(seed), n_cond=64, n_target=64)
+            p = pair.polycube
+            Polycube(p.xs * scale + off[0], p.ys * scale + off[1], p.zs * scale + off[2], p.occupancy,
+                     meta={**p.meta, "seed": int(seed), "scale": scale, "offset": off.tolist()}).save(sidecar_path(path))
+            write_surface(pair.shape_vertices * scale + off, pair.faces, path)
+        paths.append(path)
+    return paths
+
+
+# --------------------------------------------------------------------------- manifest and report
+
+
+def load_json(path: str | os.PathLike) -> dict:
+    """A JSON file as a dict; ``{}`` when it does not exist."""
+    p = Path(path)
+    return json.loads(p.read_text()) if p.is_file() else {}
+
+
+def read_manifest(out: str | os.PathLike) -> dict:
+    """``<out>/manifest.json`` as a dict (``{"parts": [], ...}`` when there is none)."""
+    p = Path(out) / MANIFEST
+    if not p.is_file():
+        return {"parts": []}
+    return json.loads(p.read_text())
+
+
+def merge_rows(old: list[dict], new: list[dict]) -> list[dict]:
+    """Rows of ``old`` replaced by the rows of ``new`` for the same part path (new ones appended)."""
+    by_path = {r["path"]: r for r in old}
+    for r in new:
+        by_path[r["path"]] = r
+    return sorted(by_path.values(), key=lambda r: r["name"])
+
+
+def write_manifest(out: str | os.PathLike, rows: list[dict], *, parameters: dict | None = None,
+                   extra: dict | None = None) -> Path:
+    """Write ``manifest.json``: the run's parameters, counts and one row per part."""
+    counts = {s: sum(r["status"] == s for r in rows) for s in ("meshed", "failed")}
+    body = {"updated": time.strftime("%Y-%m-%dT%H:%M:%S"), "counts": counts, "parameters": _plain(parameters or {}),
+            **(extra or {}), "parts": rows}
+    return write_json(Path(out) / MANIFEST, body)
+
+
+def summary_rows(rows: list[dict]) -> list[dict]:
+    """The summary table: one flat row per part, plain Python types (Prefect table artifacts)."""
+    out = []
+    for r in rows:
+        q = r.get("quality") or {}
+        out.append({
+            "part": r["name"],
+            "status": r["status"],
+            "stage": r["stage"],
+            "polycube": r.get("provenance") or "",
+            "hexes": q.get("hexes") or 0,
+            "sj_min": _round(q.get("sj_min")),
+            "sj_avg": _round(q.get("sj_avg")),
+            "hausdorff_pct": _round(None if q.get("hausdorff") is None else 100 * q["hausdorff"]),
+            "valid": bool(q.get("valid")) if q else False,
+            "seconds": round(float(sum((r.get("timings") or {}).values())), 2),
+            "error": r.get("error") or "",
+        })
+    return out
+
+
+def format_table(rows: list[dict]) -> str:
+    """A plain-text table of :func:`summary_rows` (the CLI's final summary)."""
+    if not rows:
+        return "(no parts)"
+    cols = ["part", "status", "stage", "polycube", "hexes", "sj_min", "sj_avg", "hausdorff_pct", "seconds", "error"]
+    cells = [[("" if r[c] is None else str(r[c])) for c in cols] for r in rows]
+    widths = [min(60, max(len(c), *(len(x[i]) for x in cells))) for i, c in enumerate(cols)]
+    line = lambda xs: "  ".join(x[:w].ljust(w) for x, w in zip(xs, widths)).rstrip()  # noqa: E731
+    return "\n".join([line(cols), line(["-" * w for w in widths])] + [line(x) for x in cells])
+
+
+def write_report_html(out: str | os.PathLike, rows: list[dict], *, title: str = "PolycubeNet meshing report") -> Path:
+    """``<out>/report.html``: counts, a table (status, polycube, quality, time, error) and the
+    pictures of every meshed part (relative links to ``<part>/preview.png``, ``quality.png``)."""
+    out = Path(out)
+    esc = html.escape
+    n_ok = sum(r["status"] == "meshed" for r in rows)
+    head = ("<th>part</th><th>status</th><th>stage</th><th>polycube</th><th>hexes</th><th>SJ min</th><th>SJ avg</th>"
+            "<th>Hausdorff %</th><th>valid</th><th>time s</th><th>error</th>")
+    body = []
+    for s in summary_rows(rows):
+        cls = "ok" if s["status"] == "meshed" and s["valid"] else ("warn" if s["status"] == "meshed" else "bad")
+        body.append(
+            f"<tr class='{cls}'><td><a href='#{esc(s['part'])}'>{esc(s['part'])}</a></td><td>{esc(s['status'])}</td>"
+            f"<td>{esc(s['stage'])}</td><td>{esc(s['polycube'])}</td><td>{s['hexes']}</td><td>{_fmt(s['sj_min'])}</td>"
+            f"<td>{_fmt(s['sj_avg'])}</td><td>{_fmt(s['hausdorff_pct'])}</td><td>{'yes' if s['valid'] else 'no'}</td>"
+            f"<td>{s['seconds']}</td><td>{esc(s['error'])}</td></tr>")
+    cards = []
+    for r in rows:
+        if r["status"] != "meshed":
+            continue
+        d = r["name"]
+        pics = "".join(f"<img src='{esc(d)}/{p}' alt='{p}'>" for p in ("preview.png", "quality.png")
+                       if (out / d / p).is_file())
+        files = " ".join(f"<a href='{esc(d)}/{esc(f)}'>{esc(f)}</a>" for f in r.get("files", []))
+        cards.append(f"<section id='{esc(d)}'><h3>{esc(d)}</h3><p>{files}</p>{pics}</section>")
+    doc = f"""<!doctype html>
+<html><head><meta charset="utf-8"><title>{esc(title)}</title>
+<style>
+body {{ font-family: sans-serif; margin: 2em; }} table {{ border-collapse: collapse; }}
+td, th {{ border: 1px solid #ccc; padding: 3px 8px; font-size: 13px; }} tr.bad {{ background: #fdd; }}
+tr.warn {{ background: #ffd; }} section img {{ max-width: 480px; margin-right: 1em; }}
+</style></head><body>
+<h1>{esc(title)}</h1>
+<p>{len(rows)} parts: {n_ok} meshed, {len(rows) - n_ok} failed. Generated {time.strftime('%Y-%m-%d %H:%M:%S')}.</p>
+<table><tr>{head}</tr>
+{chr(10).join(body)}
+</table>
+<h2>Parts</h2>
+{chr(10).join(cards)}
+</body></html>
+"""
+    return write_text(out / REPORT, doc)
+
+
+def _round(x, nd: int = 4):
+    return None if x is None else round(float(x), nd)
+
+
+def _fmt(x) -> str:
+    return "" if x is None else f"{x:.3f}"
+
+
+def thumbnail_data_uri(png: str | os.PathLike, width: int = 360) -> str | None:
+    """A small JPEG of a picture as a ``data:`` URI (to embed in a markdown artifact), or None."""
+    try:
+        import base64
+        import io
+
+        from PIL import Image
+
+        with Image.open(png) as im:
+            im = im.convert("RGB")
+            im.thumbnail((width, width))
+            buf = io.BytesIO()
+            im.save(buf, format="JPEG", quality=70)
+        return "data:image/jpeg;base64," + base64.b64encode(buf.getvalue()).decode()
+    except (OSError, ImportError, ValueError):
+        return None
+
+
+__all__ = [
+    "PART_SUFFIXES", "HEX_FORMATS", "STAGES", "discover", "part_names", "file_hash", "stable_hash", "stage_key",
+    "stage_params", "chain_keys", "stage_path", "sweep_partials", "sidecar_path", "polycube_to_frame",
+    "SidecarOracle", "classical_available", "make_source", "source_extra", "load_sample", "read_loaded",
+    "polycube_cloud", "write_generated", "cleanup_extract", "read_extracted", "register", "partition_pullback",
+    "report_export", "write_synthetic_parts", "read_manifest", "merge_rows", "write_manifest", "summary_rows",
+    "format_table", "load_json", "write_report_html", "thumbnail_data_uri",
+]

@@ -1,0 +1,97 @@
+"""The ``polycubenet`` command line: arguments, exit codes, ``report``, and the training
+commands it would run (the commands that mesh are run under the Prefect harness in
+tests/test_flows.py)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from flows import cli
+from polycubenet import library
+
+
+def _manifest(out):
+    rows = [
+        {"name": "bracket", "path": "/parts/bracket.step", "hash": "a" * 64, "status": "meshed", "stage": "export",
+         "error": None, "provenance": "learned", "fallback": None, "timings": {"load_sample": 0.5, "export": 1.25},
+         "computed": ["load_sample", "export"], "reused": [], "files": ["hex.vtu", "preview.png"],
+         "quality": {"hexes": 4800, "sj_min": 0.31, "sj_avg": 0.93, "valid": True, "hausdorff": 0.004}},
+        {"name": "crushed", "path": "/parts/crushed.stl", "hash": "b" * 64, "status": "failed", "stage": "load_sample",
+         "error": "OpenBoundaryError: /parts/crushed.stl: 12 boundary edges", "provenance": None, "fallback": None,
+         "timings": {}, "computed": [], "reused": [], "files": [], "quality": None},
+    ]
+    (out / "bracket").mkdir(parents=True)
+    (out / "bracket" / "preview.png").write_bytes(b"\x89PNG\r\n")
+    library.write_manifest(out, rows, parameters={"formats": ["vtu"]})
+    return rows
+
+
+def test_report_rebuilds_html_and_prints_the_table(tmp_path, capsys):
+    _manifest(tmp_path)
+    assert cli.main(["report", str(tmp_path)]) == 0
+    text = capsys.readouterr().out
+    lines = [ln for ln in text.splitlines() if ln.startswith(("bracket", "crushed"))]
+    assert len(lines) == 2 and "4800" in lines[0] and "0.93" in lines[0]
+    assert "OpenBoundaryError" in lines[1] and "load_sample" in lines[1]
+    assert "2 parts: 1 meshed, 1 failed" in text
+    html = (tmp_path / "report.html").read_text()
+    assert "bracket/preview.png" in html and "crushed" in html and "12 boundary edges" in html
+    assert "crushed/preview.png" not in html  # no pictures for a failed part
+
+
+def test_usage_errors_exit_2_without_running_anything(tmp_path, capsys):
+    assert cli.main(["report", str(tmp_path)]) == 2
+    assert cli.main(["retry", str(tmp_path)]) == 2
+    assert cli.main(["mesh", str(tmp_path / "nope"), "-o", str(tmp_path / "out")]) == 2
+    (tmp_path / "empty").mkdir()
+    assert cli.main(["mesh", str(tmp_path / "empty"), "-o", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "nope" in err and "no parts found" in err
+    assert not (tmp_path / "out").exists()
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["mesh", "x.stl", "-o", "o", "--size", "0.02", "--hexes", "100"])
+    assert exc.value.code == 2
+
+
+def test_mesh_options_map_to_flow_arguments():
+    a = cli._parser().parse_args(["mesh", "p", "-o", "o", "--size", "0.03", "--formats", "vtu, inp,bdf",
+                                  "--polycube", "oracle", "--no-fallback", "--points", "2048", "--work", "w"])
+    kw = cli._mesh_kwargs(a)
+    assert kw["target_size"] == 0.03 and kw["target_hexes"] is None
+    assert kw["formats"] == ["vtu", "inp", "bdf"] and kw["polycube"] == "oracle" and kw["fallback"] is False
+    assert kw["n_sample"] == 2048 and kw["work"] == "w" and "checkpoint" not in kw
+    b = cli._parser().parse_args(["mesh", "p", "-o", "o", "--hexes", "800"])
+    assert cli._mesh_kwargs(b)["target_hexes"] == 800 and "target_size" not in cli._mesh_kwargs(b)
+
+
+def test_train_commands_use_torchrun_for_several_gpus(tmp_path):
+    from flows.train import train_steps
+
+    one = train_steps("d", str(tmp_path), "h", steps=10, preset="cpu", batch=None, points=256, nproc=1,
+                      resume=True, eval_count=5, eval_steps=4)
+    assert one["train"][1:3] == ["-m", "polycubenet.train"] and "--no-resume" not in one["train"]
+    assert one["train"][one["train"].index("--points") + 1] == "256"
+    assert one["train"][one["train"].index("--out") + 1] == str(tmp_path)
+    four = train_steps("d", str(tmp_path), "h", steps=10, preset="paper", batch=64, points=None, nproc=4,
+                       resume=False, eval_count=5, eval_steps=None)
+    assert four["train"][1:3] == ["-m", "torch.distributed.run"] and "--nproc_per_node=4" in four["train"]
+    assert four["train"][-1] == "--no-resume" and "--points" not in four["train"]
+    ev = four["evaluate"]
+    assert ev[ev.index("--checkpoint") + 1] == str(tmp_path / "last.pt")
+    assert ev[ev.index("--publish") + 1] == str(tmp_path / "published.pt")
+
+
+def test_publish_writes_checkpoint_and_metrics_together(tmp_path):
+    from tasks.train import publish
+
+    ck, metrics = tmp_path / "published.pt", tmp_path / "metrics.json"
+    ck.write_bytes(b"weights" * 100)
+    metrics.write_text(json.dumps({"chamfer": 0.012, "structure_ok": 0.8, "rows": [1, 2, 3]}))
+    res = publish.fn(str(ck), str(metrics), str(tmp_path / "pub"), "polycubenet-cpu-1")
+    pub = tmp_path / "pub"
+    assert (pub / "polycubenet-cpu-1.pt").read_bytes() == ck.read_bytes() == (pub / "latest.pt").read_bytes()
+    body = json.loads((pub / "latest.json").read_text())
+    assert body["checkpoint"] == "polycubenet-cpu-1.pt" and body["metrics"] == {"chamfer": 0.012, "structure_ok": 0.8}
+    assert res["summary"]["chamfer"] == 0.012 and not list(pub.glob(".tmp-*"))

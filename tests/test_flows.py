@@ -1,0 +1,467 @@
+"""The orchestration: library helpers, the stage tasks' rules, and the flows under one
+session-scoped ``prefect_test_harness``.
+
+Synthetic parts (held-out seeds, STL in mm) with ground-truth sidecars give the polycube
+(``polycube="oracle"``), so these tests exercise the orchestration, not the model.  Most
+runs use a thread pool (stage functions counted by wrapping them); one uses a local Dask
+cluster.  Recomputation is counted (calls of the library's stage functions, Prefect task
+states), never timed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+os.environ.setdefault("DO_NOT_TRACK", "1")
+os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "90")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+from polycubenet import library  # noqa: E402
+from polycubenet.data import Polycube  # noqa: E402
+from polycubenet.errors import OpenBoundaryError, PartError, PolycubeError  # noqa: E402
+from polycubenet.frame import Transform  # noqa: E402
+from polycubenet.pipeline import PipelineConfig  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+GOOD = (9005, 9004)  # held-out synthetic seeds: genus 1 and 2, quick to mesh
+SMALL = dict(n_sample=2048, n_polycube=4096, n_register=1000, target_hexes=600)
+STAGE_FNS = ("load_sample", "polycube_cloud", "cleanup_extract", "register", "partition_pullback", "report_export")
+
+
+# --------------------------------------------------------------------------- fixtures
+
+
+@pytest.fixture(scope="session")
+def prefect_harness():
+    """One Prefect test server for every flow test (it takes ~15 s to start)."""
+    from prefect.testing.utilities import prefect_test_harness
+
+    with prefect_test_harness(server_startup_timeout=120):
+        yield
+
+
+@pytest.fixture(scope="session")
+def part_lib(tmp_path_factory) -> Path:
+    """Two good synthetic parts, an unreadable file, an open surface, and a part whose oracle
+    polycube has the wrong genus (its PolycubeError must be final for that part only)."""
+    import trimesh
+
+    d = tmp_path_factory.mktemp("parts")
+    library.write_synthetic_parts(d, GOOD)
+    (d / "broken.stl").write_bytes(b"this is not an STL file at all\n" * 4)
+    box = trimesh.creation.box(extents=[30, 20, 10])
+    trimesh.Trimesh(box.vertices, box.faces[:-1], process=False).export(d / "open_box.stl")
+    from polycubenet.io import load_part, write_surface
+
+    p = load_part(d / f"synth-{GOOD[1]}.stl")  # the same shape, other bytes: its own content hash
+    write_surface(p.vertices, p.faces, d / "wrong_genus.obj")
+    other = library.write_synthetic_parts(tmp_path_factory.mktemp("other"), [GOOD[0]])[0]
+    shutil.copy(library.sidecar_path(other), d / "wrong_genus.polycube.npz")
+    return d
+
+
+def _runner(kind="threads", workers=2):
+    from flows.runners import make_runner
+
+    return make_runner(workers, kind=kind)
+
+
+def _mesh(inputs, out, runner=None, **kw):
+    from flows.mesh_library import mesh_library
+
+    args = dict(polycube="oracle", fallback=False, formats=["vtu", "inp"], **SMALL)
+    args.update(kw)
+    f = mesh_library.with_options(task_runner=runner or _runner())
+    state = f(inputs=[str(i) for i in inputs], out=str(out), return_state=True, **args)
+    return state, state.result()
+
+
+class Counter:
+    """Wraps the library's stage functions (the tasks call them through the module) and counts calls."""
+
+    def __init__(self, monkeypatch, fail: dict | None = None):
+        self.calls = {n: 0 for n in STAGE_FNS}
+        for name in STAGE_FNS:
+            real = getattr(library, name)
+
+            def wrapped(*a, _real=real, _name=name, **k):
+                self.calls[_name] += 1
+                if fail and _name in fail:
+                    raise fail[_name]
+                return _real(*a, **k)
+
+            monkeypatch.setattr(library, name, wrapped)
+
+
+@pytest.fixture(scope="module")
+def batch(prefect_harness, part_lib, tmp_path_factory):
+    out = tmp_path_factory.mktemp("batch") / "out"
+    state, res = _mesh([part_lib], out)
+    return {"state": state, "res": res, "out": out}
+
+
+def _rows(res):
+    return {r["name"]: r for r in res["rows"]}
+
+
+# --------------------------------------------------------------------------- library (no Prefect)
+
+
+def test_discover_folders_globs_and_preference(tmp_path):
+    (tmp_path / "a").mkdir()
+    for name in ("a/p.step", "a/p.stl", "a/q.obj", "a/notes.txt", "r.STL"):
+        (tmp_path / name).write_text("x")
+    found = library.discover([tmp_path])
+    assert [p.name for p in found] == ["p.step", "q.obj", "r.STL"]  # the STL export of p.step is skipped
+    assert [p.name for p in library.discover([str(tmp_path / "a" / "*.stl")], prefer_cad=False)] == ["p.stl"]
+    with pytest.raises(FileNotFoundError, match="nothing-here"):
+        library.discover([tmp_path / "nothing-here"])
+
+
+def test_part_names_disambiguate_same_stems():
+    names = library.part_names([Path("x/a.stl"), Path("y/a.stl"), Path("b.stl")], ["1" * 64, "2" * 64, "3" * 64])
+    assert names == ["a-11111111", "a-22222222", "b"]
+
+
+def test_keys_change_only_downstream_of_a_changed_parameter():
+    base = library.chain_keys("h" * 64, library.stage_params(PipelineConfig(**SMALL)))
+    finer = library.chain_keys("h" * 64, library.stage_params(PipelineConfig(**{**SMALL, "target_hexes": 2000})))
+    same = [s for s in library.STAGES if base[s] == finer[s]]
+    assert same == ["load_sample", "polycube", "extract", "register"]
+    other_file = library.chain_keys("g" * 64, library.stage_params(PipelineConfig(**SMALL)))
+    assert all(other_file[s] != base[s] for s in library.STAGES)
+    fallback = library.chain_keys("h" * 64, library.stage_params(PipelineConfig(**SMALL)), source="classical")
+    assert fallback["load_sample"] == base["load_sample"] and fallback["polycube"] != base["polycube"]
+
+
+def test_polycube_to_frame_follows_a_signed_permutation():
+    rng = np.random.default_rng(0)
+    occ = rng.random((2, 3, 4)) > 0.3
+    poly = Polycube(np.array([0.0, 1, 3]), np.array([0.0, 2, 3, 5]), np.array([0.0, 1, 2, 4, 8]), occ)
+    R = np.array([[0.0, 0, -1], [1, 0, 0], [0, -1, 0]])  # canonical x = -file z, y = file x, z = -file y
+    T = Transform(np.array([1.0, 2.0, 3.0]), 0.5, R)
+    out = library.polycube_to_frame(poly, T)
+    centres = lambda g: 0.5 * (g[1:] + g[:-1])  # noqa: E731
+    for i, j, k in np.argwhere(occ):  # every occupied file cell lands on an occupied canonical cell
+        c = T.forward(np.array([centres(poly.xs)[i], centres(poly.ys)[j], centres(poly.zs)[k]]))
+        idx = [np.searchsorted(g, c[a]) - 1 for a, g in enumerate(out.grid)]
+        assert out.occupancy[tuple(idx)]
+    assert out.occupancy.sum() == occ.sum() and all(np.all(np.diff(g) > 0) for g in out.grid)
+    with pytest.raises(PolycubeError, match="axis-aligned"):
+        c, s = np.cos(0.3), np.sin(0.3)
+        library.polycube_to_frame(poly, Transform(np.zeros(3), 1.0, np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])))
+
+
+# --------------------------------------------------------------------------- task rules (task.fn level)
+
+
+def test_retry_rule_is_final_for_part_and_polycube_errors():
+    from prefect.states import Failed
+
+    from tasks.common import retry_transient
+
+    def retries(exc):
+        return retry_transient(None, None, Failed(data=exc))
+
+    assert not retries(OpenBoundaryError("p.stl", "3 boundary edges"))
+    assert not retries(PolycubeError("genus 1 differs from 2", part="p.stl"))
+    assert not retries(ValueError("a bug is not retried"))
+    assert not retries(FileNotFoundError("gone"))
+    assert retries(ConnectionResetError("worker lost"))
+    assert retries(TimeoutError("slow storage"))
+    assert retries(RuntimeError("CUDA out of memory. Tried to allocate 2 GiB"))
+
+
+def test_stage_task_fn_writes_and_reuses_its_file(part_lib, tmp_path):
+    from tasks import mesh as T
+
+    cfg = PipelineConfig(**SMALL)
+    path = part_lib / f"synth-{GOOD[0]}.stl"
+    dest = tmp_path / "load.npz"
+    rec = T.load_sample.fn(str(path), str(dest), key="k", config=cfg, name="x")
+    assert rec["path"] == str(dest) and rec["stage"] == "load_sample" and rec["flow_run"] is None
+    part, sample, transform, meta = library.read_loaded(dest)
+    assert len(sample.points) == cfg.n_sample and meta["part"]["genus"] == 1
+    from polycubenet.io import load_part
+
+    assert np.allclose(transform.inverse(part.vertices), load_part(path).vertices)  # the way back to mm
+    again = T.load_sample.fn(str(path), str(dest), key="k", config=cfg, name="x")
+    assert again["flow_run"] == "file"  # a complete file with the keyed name is not recomputed
+    with pytest.raises(PartError, match="broken.stl"):
+        T.load_sample.fn(str(part_lib / "broken.stl"), str(tmp_path / "b.npz"), key="b", config=cfg)
+    assert not (tmp_path / "b.npz").exists() and not list(tmp_path.glob(".tmp-*"))
+
+
+# --------------------------------------------------------------------------- flows
+
+
+def test_batch_with_good_and_bad_parts(batch, part_lib):
+    assert batch["state"].is_completed()  # bad parts never fail the batch
+    res, out = batch["res"], batch["out"]
+    rows = _rows(res)
+    assert res["counts"] == {"meshed": 2, "failed": 3}
+    for seed in GOOD:
+        r = rows[f"synth-{seed}"]
+        assert r["status"] == "meshed" and r["stage"] == "export" and r["provenance"] == "oracle"
+        assert r["computed"] == list(library.STAGES) and r["reused"] == []
+        assert r["quality"]["hexes"] > 100 and r["quality"]["sj_avg"] > 0.5 and r["quality"]["hausdorff"] < 0.05
+        from polycubenet.io import read_hex
+
+        m = read_hex(out / r["name"] / "hex.inp")
+        assert len(m.hexes) == r["quality"]["hexes"]
+        assert {"hex.vtu", "hex.inp", "quality.json", "preview.png", "result.json"} <= set(r["files"])
+    assert rows["broken"]["stage"] == "load_sample" and "UnreadableFileError" in rows["broken"]["error"]
+    assert "broken.stl" in rows["broken"]["error"]
+    assert rows["open_box"]["stage"] == "load_sample" and "OpenBoundaryError" in rows["open_box"]["error"]
+    assert rows["wrong_genus"]["stage"] == "extract" and "PolycubeError" in rows["wrong_genus"]["error"]
+    assert "genus" in rows["wrong_genus"]["error"]
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert {r["name"]: r["status"] for r in manifest["parts"]} == {n: r["status"] for n, r in rows.items()}
+    assert manifest["parameters"]["config"]["target_hexes"] == SMALL["target_hexes"]
+    html = (out / "report.html").read_text()
+    assert all(n in html for n in rows) and "synth-9005/preview.png" in html
+    assert not list(out.rglob(".tmp-*"))
+
+
+def test_artifacts_read_back_from_the_api(batch):
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterFlowRunId
+
+    run_id = batch["state"].state_details.flow_run_id
+    with get_client(sync_client=True) as client:
+        arts = client.read_artifacts(artifact_filter=ArtifactFilter(flow_run_id=ArtifactFilterFlowRunId(any_=[run_id])))
+    by_key = {a.key: a for a in arts}
+    table = by_key["mesh-library-summary"].data
+    table = json.loads(table) if isinstance(table, str) else table
+    assert sorted(r["part"] for r in table) == sorted(_rows(batch["res"]))
+    assert {r["part"]: r["status"] for r in table}["wrong_genus"] == "failed"
+    md = by_key["part-synth-9005"].data
+    assert "meshed" in md and "sj_min" in md and "data:image/jpeg;base64," in md
+    assert "UnreadableFileError" in by_key["part-broken"].data
+    progress = [a for a in arts if a.type == "progress"]
+    assert len(progress) == 1 and float(progress[0].data) == pytest.approx(100.0)
+
+
+def test_forced_failure_then_retry_reuses_earlier_stages(prefect_harness, part_lib, tmp_path, monkeypatch):
+    from flows.retry_failed import retry_failed
+
+    out = tmp_path / "out"
+    part = part_lib / f"synth-{GOOD[0]}.stl"
+    first = Counter(monkeypatch, fail={"partition_pullback": PolycubeError("forced failure", part="synth-9005.stl")})
+    state, res = _mesh([part, part_lib / "broken.stl"], out)
+    assert state.is_completed() and res["counts"] == {"meshed": 0, "failed": 2}
+    row = _rows(res)[f"synth-{GOOD[0]}"]
+    assert row["stage"] == "pullback" and "forced failure" in row["error"]
+    assert first.calls["partition_pullback"] == 1  # a PolycubeError is final: no retry
+
+    monkeypatch.undo()
+    again = Counter(monkeypatch)
+    res2 = retry_failed(out=str(out), runner="threads", workers=2)
+    assert res2["retried"] == 2
+    row = _rows(res2)[f"synth-{GOOD[0]}"]
+    assert row["status"] == "meshed"
+    # counted, not timed: every stage before the failure came from the cache
+    assert again.calls["polycube_cloud"] == 0 and again.calls["cleanup_extract"] == 0 and again.calls["register"] == 0
+    assert again.calls["partition_pullback"] == 1 and again.calls["report_export"] == 1
+    assert again.calls["load_sample"] == 1  # only the broken file, which failed again (not cached)
+    assert row["reused"] == ["load_sample", "polycube", "extract", "register"]
+    assert row["computed"] == ["pullback", "export"]
+    manifest = library.read_manifest(out)
+    assert {r["name"]: r["status"] for r in manifest["parts"]} == {"broken": "failed", f"synth-{GOOD[0]}": "meshed"}
+
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
+
+    with get_client(sync_client=True) as client:  # the task states say the same as the counters
+        runs = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[_flow_run_of(res2)])))
+    names = {tr.name: tr.state.name for tr in runs}
+    cached = sorted(n.split("-synth")[0] for n, s in names.items() if s == "Cached")
+    assert cached == ["extract", "load-sample", "polycube", "register"]
+
+
+def _flow_run_of(res) -> str:
+    return json.loads((Path(res["manifest"])).read_text())["last_run"]["flow_run"]
+
+
+def test_sigkill_mid_batch_then_rerun(prefect_harness, part_lib, tmp_path, monkeypatch):
+    from prefect.settings import PREFECT_API_URL
+
+    out = tmp_path / "out"
+    drop = tmp_path / "drop"
+    drop.mkdir()
+    for seed in GOOD:
+        for f in (f"synth-{seed}.stl", f"synth-{seed}.polycube.npz"):
+            shutil.copy(part_lib / f, drop / f)
+    shutil.copy(part_lib / f"synth-{GOOD[0]}.stl", drop / "twin.stl")  # same bytes, another name
+    shutil.copy(part_lib / f"synth-{GOOD[0]}.polycube.npz", drop / "twin.polycube.npz")
+    code = (
+        "from flows.mesh_library import mesh_library\n"
+        "from flows.runners import make_runner\n"
+        f"mesh_library.with_options(task_runner=make_runner(1, kind='threads'))(inputs=[{str(drop)!r}], out={str(out)!r},"
+        f" polycube='oracle', fallback=False, formats=['vtu', 'inp'], **{SMALL!r})\n"
+    )
+    env = {**os.environ, "PREFECT_API_URL": PREFECT_API_URL.value(), "PREFECT_LOGGING_LEVEL": "WARNING"}
+    proc = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 240
+        while time.time() < deadline and proc.poll() is None and not list(out.glob("*/result.json")):
+            time.sleep(0.1)
+        assert proc.poll() is None, "the batch finished (or died) before it could be killed"
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    finished = {p.parent.name for p in out.glob("*/result.json")}
+    assert 1 <= len(finished) < 3
+    work = out / ".work"
+    for f in work.rglob("*.npz"):  # a file with its final name is whole
+        with np.load(f, allow_pickle=False) as z:
+            assert all(z[k].size >= 0 for k in z.files)
+    counts_before = {s: len(list(work.rglob(f"{s}-*.npz"))) for s in ("load_sample", "polycube", "extract", "register", "pullback")}
+
+    calls = Counter(monkeypatch)
+    state, res = _mesh([drop], out, runner=_runner("threads", 1))  # one thread: twin and synth-9005 never race
+    assert state.is_completed() and res["counts"] == {"meshed": 3, "failed": 0}
+    rows = _rows(res)
+    for name in finished:
+        assert rows[name]["computed"] == []  # nothing that finished is recomputed
+    # twin.stl has synth-9005's bytes: its stages share the keys, so only its export is its own
+    fn_of = {"load_sample": "load_sample", "polycube": "polycube_cloud", "extract": "cleanup_extract",
+             "register": "register", "pullback": "partition_pullback"}
+    for stage, fn in fn_of.items():
+        assert calls.calls[fn] == 2 - counts_before[stage], (stage, calls.calls, counts_before)
+    assert calls.calls["report_export"] == 3 - len(finished)
+    assert not list(out.rglob(".tmp-*"))  # no partial file anywhere
+    for r in rows.values():
+        json.loads((out / r["name"] / "result.json").read_text())
+        assert (out / r["name"] / "hex.vtu").stat().st_size > 0
+
+
+def test_dask_runner_local_cluster(batch, part_lib):
+    """The same parts on a local Dask cluster: only the export (new formats) is computed, on the worker."""
+    state, res = _mesh([part_lib / f"synth-{s}.stl" for s in GOOD], batch["out"], runner=_runner("dask", 1),
+                       formats=["vtu", "mesh"])
+    assert state.is_completed() and res["counts"] == {"meshed": 2, "failed": 0}
+    for r in res["rows"]:
+        assert r["reused"] == ["load_sample", "polycube", "extract", "register", "pullback"]
+        assert r["computed"] == ["export"] and "hex.mesh" in r["files"]
+    manifest = library.read_manifest(batch["out"])
+    assert len(manifest["parts"]) == 5  # merged with the earlier rows
+
+
+def test_scan_drops_meshes_only_new_and_changed(batch, part_lib, tmp_path):
+    from flows.scan_drops import scan_drops
+
+    drop = tmp_path / "drop"
+    shutil.copytree(part_lib, drop)
+    out = batch["out"].parent / "scan-out"
+    work = str(batch["out"] / ".work")  # same content + parameters -> the batch's stages are reused
+    opts = {**{k: v for k, v in SMALL.items() if k != "target_hexes"}, "work": work, "fallback": False}
+    kw = dict(polycube="oracle", formats=["vtu"], target_hexes=SMALL["target_hexes"], runner="threads", workers=2,
+              mesh_options=opts)
+    first = scan_drops(drop=str(drop), out=str(out), **kw)
+    assert len(first["new"]) == 5 and first["changed"] == []
+    assert all(set(r["computed"]) <= {"export", "load_sample"} for r in first["rows"])  # failed loads are not cached
+    nothing = scan_drops(drop=str(drop), out=str(out), **kw)
+    assert nothing["new"] == [] and nothing["changed"] == []
+
+    (drop / "broken.stl").write_bytes(b"still not an STL, but different\n" * 3)
+    shutil.copy(drop / f"synth-{GOOD[1]}.stl", drop / "copy.stl")
+    shutil.copy(drop / f"synth-{GOOD[1]}.polycube.npz", drop / "copy.polycube.npz")
+    second = scan_drops(drop=str(drop), out=str(out), **kw)
+    assert [Path(p).name for p in second["new"]] == ["copy.stl"]
+    assert [Path(p).name for p in second["changed"]] == ["broken.stl"]
+    copy = _rows(second)["copy"]
+    assert copy["status"] == "meshed" and copy["computed"] == ["export"]  # same bytes as synth-9004: cached
+    manifest = library.read_manifest(out)
+    assert len(manifest["parts"]) == 6
+
+
+def test_cli_mesh_exit_code_and_summary(prefect_harness, part_lib, tmp_path, capsys):
+    from flows.cli import main
+
+    out = tmp_path / "cli-out"
+    rc = main(["mesh", str(part_lib / f"synth-{GOOD[0]}.stl"), str(part_lib / "open_box.stl"), "-o", str(out),
+               "--polycube", "oracle", "--no-fallback", "--runner", "threads", "--workers", "2",
+               "--points", "2048", "--polycube-points", "4096", "--hexes", "600", "--formats", "vtu,bdf"])
+    text = capsys.readouterr().out
+    assert rc == 0  # a part that cannot be meshed is a manifest row, not a failure of the tool
+    assert "synth-9005" in text and "meshed" in text and "OpenBoundaryError" in text
+    rows = {r["name"]: r for r in library.read_manifest(out)["parts"]}
+    assert rows["synth-9005"]["status"] == "meshed" and "hex.bdf" in rows["synth-9005"]["files"]
+    assert rows["open_box"]["status"] == "failed"
+    assert main(["mesh", str(tmp_path / "missing"), "-o", str(out)]) == 2
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory) -> Path:
+    """An untrained tiny model: its clouds are noise, so the learned polycube is always rejected."""
+    import torch
+
+    from polycubenet.model import Diffusion, PolycubeNet, preset
+    from polycubenet.model.checkpoint import save_checkpoint
+
+    torch.manual_seed(0)
+    cfg = preset("tiny")
+    net = PolycubeNet(cfg)
+    path = tmp_path_factory.mktemp("ckpt") / "tiny.pt"
+    return save_checkpoint(path, {"model_config": cfg.to_dict(), "diffusion": Diffusion().to_dict(),
+                                  "ema": net.state_dict(), "metrics": {}})
+
+
+def test_learned_batches_then_classical_fallback(prefect_harness, part_lib, tiny_checkpoint, tmp_path, monkeypatch):
+    """Generation runs as batched tasks (packed under the point budget) writing one learned cloud per
+    part; a rejected learned polycube goes to the classical source with its own cache keys, and the
+    row says so.  The classical construction itself is slow here, so its place is taken by the
+    part's sidecar (provenance "classical"): this tests the wiring, not the construction."""
+    real_make_source = library.make_source
+
+    def fake_make_source(kind, part_path, transform):
+        if kind == "classical":
+            src = library.SidecarOracle(library.sidecar_path(part_path), transform)
+
+            def classical(sample, V, F, config):
+                cloud = src(sample, V, F, config)
+                cloud.meta["provenance"] = "classical"
+                return cloud
+
+            return classical
+        return real_make_source(kind, part_path, transform)
+
+    monkeypatch.setattr(library, "classical_available", lambda: True)
+    monkeypatch.setattr(library, "make_source", fake_make_source)
+    out = tmp_path / "out"
+    budget = SMALL["n_sample"] + SMALL["n_polycube"]  # one part per generation batch
+    state, res = _mesh([part_lib / f"synth-{GOOD[0]}.stl", part_lib / "wrong_genus.obj"], out, polycube="learned",
+                       fallback=True, checkpoint=str(tiny_checkpoint), steps=2, point_budget=budget)
+    assert state.is_completed()
+    rows = _rows(res)
+    good, wrong = rows[f"synth-{GOOD[0]}"], rows["wrong_genus"]
+    assert good["status"] == "meshed" and good["provenance"] == "classical"
+    assert good["fallback"].startswith("learned polycube rejected")
+    assert wrong["status"] == "failed" and wrong["stage"] == "extract" and "genus" in wrong["error"]
+    assert wrong["fallback"].startswith("learned polycube rejected")
+    work = out / ".work"
+    learned = [library.PolycubeCloud.load(p) for p in work.rglob("polycube-*.npz")
+               if library.PolycubeCloud.load(p).meta.get("provenance") == "learned"]
+    assert len(learned) == 2 and all(c.points.shape == (SMALL["n_polycube"], 3) for c in learned)
+
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
+
+    with get_client(sync_client=True) as client:
+        runs = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[_flow_run_of(res)])))
+    assert sum(tr.name.startswith("generate-") for tr in runs) == 2
