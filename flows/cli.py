@@ -142,7 +142,8 @@ def _print_summary(out: str) -> None:
     rows = m["parts"]
     print(library.format_table(library.summary_rows(rows)))
     n_ok = sum(r["status"] == "meshed" for r in rows)
-    print(f"\n{len(rows)} parts: {n_ok} meshed, {len(rows) - n_ok} failed.  manifest: {Path(out) / library.MANIFEST}"
+    n_bad = sum(r["status"] == "meshed" and not (r.get("quality") or {}).get("valid") for r in rows)
+    print(f"\n{len(rows)} parts: {n_ok} meshed ({n_bad} of them flagged invalid: see quality.json), {len(rows) - n_ok} failed.  manifest: {Path(out) / library.MANIFEST}"
           f"  report: {Path(out) / library.REPORT}")
 
 

@@ -544,7 +544,7 @@ def format_table(rows: list[dict]) -> str:
     """A plain-text table of :func:`summary_rows` (the CLI's final summary)."""
     if not rows:
         return "(no parts)"
-    cols = ["part", "status", "stage", "polycube", "hexes", "sj_min", "sj_avg", "hausdorff_pct", "seconds", "error"]
+    cols = ["part", "status", "stage", "polycube", "hexes", "sj_min", "sj_avg", "hausdorff_pct", "valid", "seconds", "error"]
     cells = [[("" if r[c] is None else str(r[c])) for c in cols] for r in rows]
     widths = [min(60, max(len(c), *(len(x[i]) for x in cells))) for i, c in enumerate(cols)]
     line = lambda xs: "  ".join(x[:w].ljust(w) for x, w in zip(xs, widths)).rstrip()  # noqa: E731
