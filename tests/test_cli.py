@@ -35,7 +35,7 @@ def test_report_rebuilds_html_and_prints_the_table(tmp_path, capsys):
     lines = [ln for ln in text.splitlines() if ln.startswith(("bracket", "crushed"))]
     assert len(lines) == 2 and "4800" in lines[0] and "0.93" in lines[0]
     assert "OpenBoundaryError" in lines[1] and "load_sample" in lines[1]
-    assert "2 parts: 1 meshed, 1 failed" in text
+    assert "2 parts: 1 meshed (0 of them flagged invalid: see quality.json), 1 failed" in text
     html = (tmp_path / "report.html").read_text()
     assert "bracket/preview.png" in html and "crushed" in html and "12 boundary edges" in html
     assert "crushed/preview.png" not in html  # no pictures for a failed part
