@@ -1043,16 +1043,7 @@ def guarded_coverage(
     """
     X = X.copy()
     P, H = len(X), len(hexes)
-    flat = hexes.ravel()
-    order = np.argsort(flat, kind="stable")
-    used = np.unique(flat)
-    starts = np.searchsorted(flat[order], used)
-    incident = sp.csr_matrix((np.ones(8 * H, dtype=bool), (np.repeat(np.arange(H), 8), flat)), shape=(H, P))
-
-    def node_min(v):
-        m = np.full(P, np.inf)
-        m[used] = np.minimum.reduceat(np.repeat(v, 8)[order], starts)
-        return m
+    incident, node_min = _hex_incidence(hexes, P)
 
     def measure(Y, rows):
         sj_r, dg_r = scaled_jacobian_and_degenerate(Y, hexes[rows])
@@ -1439,15 +1430,7 @@ def guarded_smooth(
     deg = np.asarray(A.sum(axis=1)).ravel()
     H = len(hexes)
     flat = hexes.ravel()
-    order = np.argsort(flat, kind="stable")
-    used = np.unique(flat)
-    starts = np.searchsorted(flat[order], used)
-    incident = sp.csr_matrix((np.ones(8 * H, dtype=bool), (np.repeat(np.arange(H), 8), flat)), shape=(H, P))
-
-    def node_min(v):
-        m = np.full(P, np.inf)
-        m[used] = np.minimum.reduceat(np.repeat(v, 8)[order], starts)
-        return m
+    incident, node_min = _hex_incidence(hexes, P)
 
     def node_sum(v):
         return np.bincount(flat, weights=np.repeat(v, 8), minlength=P)
@@ -1816,3 +1799,21 @@ __all__ = [
     "guarded_coverage",
     "pull_back",
 ]
+
+
+def _hex_incidence(hexes: np.ndarray, P: int):
+    """The hex -> node incidence (H x P boolean CSR) and ``node_min(v)``: for a value per hex,
+    the minimum over the hexes around each node (inf at nodes no hex uses)."""
+    H = len(hexes)
+    flat = hexes.ravel()
+    order = np.argsort(flat, kind="stable")
+    used = np.unique(flat)
+    starts = np.searchsorted(flat[order], used)
+    incident = sp.csr_matrix((np.ones(8 * H, dtype=bool), (np.repeat(np.arange(H), 8), flat)), shape=(H, P))
+
+    def node_min(v):
+        m = np.full(P, np.inf)
+        m[used] = np.minimum.reduceat(np.repeat(v, 8)[order], starts)
+        return m
+
+    return incident, node_min
