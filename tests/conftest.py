@@ -44,3 +44,18 @@ def l_block_canonical(l_block):
     V, F = l_block
     Vc, _ = canonicalize(V, F, rotate=False)
     return Vc, F
+
+
+@pytest.fixture(scope="module")
+def tiny_net():
+    """The ``tiny`` PolycubeNet preset, seeded, with a non-zero output layer (it starts at zero,
+    which would make every prediction trivially equal)."""
+    import torch
+
+    from polycubenet.model import PolycubeNet, preset
+
+    torch.manual_seed(0)
+    net = PolycubeNet(preset("tiny")).eval()
+    with torch.no_grad():
+        torch.nn.init.normal_(net.denoiser.out.weight, std=0.1)
+    return net

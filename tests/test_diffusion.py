@@ -8,13 +8,9 @@ from polycubenet.model import Diffusion, PolycubeNet, preset
 from polycubenet.model.diffusion import from_network, to_network
 
 
-@pytest.fixture(scope="module")
-def net():
-    torch.manual_seed(0)
-    m = PolycubeNet(preset("tiny")).eval()
-    with torch.no_grad():
-        torch.nn.init.normal_(m.denoiser.out.weight, std=0.1)
-    return m
+@pytest.fixture
+def net(tiny_net):
+    return tiny_net
 
 
 def test_schedule():

@@ -9,14 +9,9 @@ from polycubenet.model.__main__ import main as params_main
 from polycubenet.model.config import ModelConfig
 
 
-@pytest.fixture(scope="module")
-def tiny():
-    torch.manual_seed(0)
-    net = PolycubeNet(preset("tiny")).eval()
-    # the output layer starts at zero: give it weights so outputs depend on everything
-    with torch.no_grad():
-        torch.nn.init.normal_(net.denoiser.out.weight, std=0.1)
-    return net
+@pytest.fixture
+def tiny(tiny_net):
+    return tiny_net
 
 
 def test_streaming_attention_equals_full_softmax():
