@@ -4,6 +4,15 @@ A local cluster's worker processes must talk to the same Prefect API as the flow
 the embedded (ephemeral) server nothing tells them where it is, and each would start its
 own (PLATFORM.md).  :func:`prepare_dask` passes the flow's API URL (and the thread
 limits) into the workers' environment just before the cluster starts.
+
+It also stops Dask from starting its worker processes with ``MALLOC_TRIM_THRESHOLD_=65536``
+(its ``distributed.nanny.pre-spawn-environ`` default, meant to hand freed memory back to
+the OS).  Setting that variable switches off glibc's adaptive mmap threshold, so every
+numpy temporary over 128 KiB becomes a fresh ``mmap`` whose pages fault in again: measured
+here on one synthetic part at 5000 hexes, the pullback took 36.0 s in a Dask worker (19.7 s
+of it system time) against 12.5 s (0.8 s system) without the variable, and the whole flow
+ran 2-2.5x slower than a plain loop.  The stages free their arrays when a part is done,
+so the worker's memory stays flat without the trim.
 """
 
 from __future__ import annotations
@@ -60,6 +69,7 @@ def prepare_dask(runner) -> None:
     and thread limits.  No-op for other runners, a scheduler address or a started cluster."""
     if not isinstance(runner, DaskTaskRunner) or runner.address or runner._client is not None:
         return
+    keep_glibc_malloc_defaults()
     env = dict(runner.cluster_kwargs.get("env") or {})
     url = current_api_url()
     if url:
@@ -69,6 +79,16 @@ def prepare_dask(runner) -> None:
             env.setdefault(k, os.environ[k])
     env.setdefault("OMP_NUM_THREADS", "1")
     runner.cluster_kwargs["env"] = env
+
+
+def keep_glibc_malloc_defaults() -> None:
+    """Start local Dask workers without ``MALLOC_TRIM_THRESHOLD_`` (see the module docstring).
+
+    Dask reads ``distributed.nanny.pre-spawn-environ`` when a nanny starts; ``None`` drops
+    the variable.  A value the user set in this process's environment is left alone."""
+    import dask
+
+    dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None})
 
 
 def gpu_workers(runner) -> int:
