@@ -93,8 +93,10 @@ def mesh_library(
     inputs : files, folders or glob patterns
     out : output folder (``<out>/<part>/hex.<fmt>``, ``manifest.json``, ``report.html``)
     formats : hex formats among vtu, vtk, mesh, inp, msh, bdf
-    polycube : ``learned`` (the model), ``oracle`` (synthetic parts' sidecars), ``classical``
-    fallback : try the classical construction where the polycube fails validation
+    polycube : ``auto`` (the model, then the classical construction for a part whose learned
+        polycube fails validation: ``learned`` with ``fallback=True``), ``learned`` (the model),
+        ``oracle`` (synthetic parts' sidecars), ``classical``
+    fallback : try the classical construction where the polycube fails validation (``auto`` always does)
     n_sample, n_polycube, n_register, target_hexes, target_size, seed : :class:`PipelineConfig`
     checkpoint, steps, point_budget, device : the model (``polycube="learned"``; budget: condition +
         output points of one generation batch, default ``inference.DEFAULT_POINT_BUDGET``)
@@ -113,8 +115,10 @@ def mesh_library(
     bad = [f for f in formats if f not in library.HEX_FORMATS]
     if bad:
         raise ValueError(f"unknown hex formats {bad}; expected some of {library.HEX_FORMATS}")
-    if polycube not in ("learned", "oracle", "classical"):
-        raise ValueError(f"unknown polycube source {polycube!r}; expected learned, oracle or classical")
+    if polycube not in ("auto", "learned", "oracle", "classical"):
+        raise ValueError(f"unknown polycube source {polycube!r}; expected auto, learned, oracle or classical")
+    if polycube == "auto":
+        polycube, fallback = "learned", True
     config = PipelineConfig(n_sample=n_sample, n_polycube=n_polycube, n_register=n_register,
                             target_hexes=target_hexes, target_size=target_size, seed=seed)
     swept = library.sweep_partials(out_p, work_p, before=time.time())

@@ -31,7 +31,7 @@ def changed_parts(drop: list[str] | str, out: str) -> tuple[list[str], list[str]
 
 
 @flow(name="scan-drops", log_prints=True)
-def scan_drops(drop: str, out: str, polycube: str = "learned", formats: list[str] = ("vtu",),
+def scan_drops(drop: str, out: str, polycube: str = "auto", formats: list[str] = ("vtu",),
                target_hexes: int | None = 5000, target_size: float | None = None, workers: int = 1,
                dask_address: str | None = None, runner: str = "dask", mesh_options: dict | None = None) -> dict:
     """Mesh the new and changed parts of ``drop`` into ``out`` (see the module docstring).

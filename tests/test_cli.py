@@ -66,6 +66,18 @@ def test_mesh_options_map_to_flow_arguments():
     assert cli._mesh_kwargs(b)["target_hexes"] == 800 and "target_size" not in cli._mesh_kwargs(b)
 
 
+@pytest.mark.parametrize("argv, polycube, fallback", [
+    ([], "learned", True),                                   # auto is the default: the model, then classical
+    (["--polycube", "auto"], "learned", True),
+    (["--polycube", "auto", "--no-fallback"], "learned", False),
+    (["--polycube", "learned"], "learned", False),           # the model's polycube only
+    (["--polycube", "classical"], "classical", False),
+])
+def test_polycube_policy_maps_to_source_and_fallback(argv, polycube, fallback):
+    kw = cli._mesh_kwargs(cli._parser().parse_args(["mesh", "p", "-o", "o", *argv]))
+    assert (kw["polycube"], kw["fallback"]) == (polycube, fallback)
+
+
 def test_train_commands_use_torchrun_for_several_gpus(tmp_path):
     from flows.train import train_steps
 
