@@ -37,6 +37,18 @@ their code:
    triangles are counted (``meta["flipped"]``): the map is injective when there are
    none.
 
+5. **Structure check** (:func:`flat_structure`).  The polycube the flattened surface
+   bounds is read off directly (the distinct chart planes as grid, the generalised
+   winding number at every cell centre as occupancy).  When it is not a valid polycube
+   of the part's genus -- a handle closed because the labelling of its hole's walls let
+   them collapse -- steps 1-4 are repeated on the part turned by a few fixed rotations
+   (:func:`_orientations`); the first orientation that gives the right genus is kept.
+6. **Plane spacing** (:func:`space_planes`, in :class:`ClassicalSource`).  When the
+   structure extraction rejects the cloud (it merges planes it cannot resolve), distinct
+   chart planes of one axis are moved at least a few cloud point spacings apart by a
+   monotone map per axis (which changes neither the structure nor any flip), so the
+   structure extraction, which merges planes it cannot resolve, recovers that polycube.
+
 The output (:class:`ClassicalSource`) is a :class:`ClassicalCloud`: a
 :class:`~polycubenet.data.PolycubeCloud` (points on the flattened surface with their
 chart's axis as normal, ``provenance = "classical"``) that also carries the flattened
@@ -105,6 +117,17 @@ class ClassicalConfig:
         When the flattened surface has flipped triangles, the labelling is redone with
         ``compactness`` doubled, up to this many times; the attempt with the fewest
         flips is kept.
+    orientations : int
+        When the solid bounded by the flattened surface (:func:`flat_structure`) does not
+        have the part's genus (a handle closed by the flattening: its hole's walls were
+        labelled so that they cannot stay apart), the whole construction is repeated on
+        the part turned by up to this many further fixed rotations
+        (:func:`_orientations`), which gives the labelling other chart layouts; the
+        attempt of the right genus with the fewest flips is kept.
+    min_plane_gap, plane_gap_spacings : float
+        When the extraction rejects the cloud, distinct chart planes of one axis are moved at least ``max(min_plane_gap,
+        plane_gap_spacings * s)`` apart (:func:`space_planes`), ``s`` being the point
+        spacing of the polycube cloud, so the structure extraction resolves them.
     """
 
     compactness: float = 1.5
@@ -120,6 +143,9 @@ class ClassicalConfig:
     fix_rounds: int = 4
     max_faces: int = 6000
     interior: str = "harmonic"
+    orientations: int = 8
+    min_plane_gap: float = 0.01
+    plane_gap_spacings: float = 2.5
 
 
 # --------------------------------------------------------------------------- topology
@@ -749,25 +775,90 @@ def decimate(V: np.ndarray, F: np.ndarray, n_faces: int) -> tuple[np.ndarray, np
     return Vd, Fd
 
 
-def classical_polycube(V: np.ndarray, F: np.ndarray, config: ClassicalConfig = ClassicalConfig(), seed: int = 0):
-    """Label, repair, refine and flatten ``(V, F)`` (canonical frame).
+def winding_numbers(X: np.ndarray, F: np.ndarray, Q: np.ndarray, chunk: int = 128) -> np.ndarray:
+    """Generalised winding number ``(K,)`` of the closed triangle surface ``(X, F)`` at the
+    points ``Q (K, 3)`` (sum of signed solid angles / 4 pi; robust to a few folds)."""
+    T = np.asarray(X, dtype=np.float64)[np.asarray(F, dtype=np.int64)]
+    out = np.zeros(len(Q))
+    for i in range(0, len(Q), chunk):
+        q = Q[i : i + chunk, None, :]
+        A, B, C = T[None, :, 0] - q, T[None, :, 1] - q, T[None, :, 2] - q
+        a, b, c = (np.linalg.norm(M, axis=2) for M in (A, B, C))
+        det = np.einsum("qfi,qfi->qf", A, np.cross(B, C))
+        den = (a * b * c + np.einsum("qfi,qfi->qf", A, B) * c + np.einsum("qfi,qfi->qf", B, C) * a
+               + np.einsum("qfi,qfi->qf", C, A) * b)
+        out[i : i + chunk] = np.arctan2(det, den).sum(axis=1) / (2.0 * np.pi)
+    return out
 
-    Flipped triangles of a flattening are relabelled (:func:`relabel_flipped`) and the
-    surface flattened again, up to ``config.fix_rounds`` times; if flips remain, the
-    labelling restarts with doubled compactness (``config.retries`` times).
 
-    Returns ``(Vp, Vs, Fs, labels, meta)``: the flattened vertices, the refined surface's
-    vertices on the part, its faces and labels, and a report (per attempt: labelling
-    checks, flips, times).  The attempt with the fewest flipped triangles is returned.
+def flat_structure(Xp: np.ndarray, F: np.ndarray, labels: np.ndarray) -> dict:
+    """The polycube that the flattened surface ``(Xp, F)`` bounds, read off directly.
+
+    The grid is the distinct chart planes of each axis; a cell is solid when the
+    surface's winding number at its centre exceeds 1/2.  Returns ``grid``, ``occupancy``,
+    ``reason`` (why it is not a valid polycube, or None) and ``genus`` (None when invalid).
     """
-    V = np.asarray(V, dtype=np.float64)
+    from .polycube import check_occupancy, solid_genus
+
+    grid = []
+    for a in range(3):
+        c = np.unique(Xp[F[labels // 2 == a, 0], a])
+        if len(c) < 2:
+            return {"grid": None, "occupancy": None, "reason": f"fewer than 2 planes on axis {'xyz'[a]}", "genus": None}
+        grid.append(c)
+    cen = np.meshgrid(*[0.5 * (g[1:] + g[:-1]) for g in grid], indexing="ij")
+    Q = np.stack([x.ravel() for x in cen], axis=1)
+    occ = (winding_numbers(Xp, F, Q) > 0.5).reshape(cen[0].shape)
+    reason = check_occupancy(occ)
+    genus = int(solid_genus(occ)) if reason is None else None
+    return {"grid": grid, "occupancy": occ, "reason": reason, "genus": genus}
+
+
+def space_planes(Xp: np.ndarray, F: np.ndarray, labels: np.ndarray, gap: float) -> np.ndarray:
+    """Move the distinct chart planes of every axis at least ``gap`` apart.
+
+    Each coordinate goes through a monotone piecewise-linear map that sends the sorted
+    planes ``p_0 < p_1 < ...`` to ``q_0 = p_0, q_{i+1} = q_i + max(p_{i+1} - p_i, gap)``
+    (slope 1 outside).  A map ``(x, y, z) -> (f(x), g(y), h(z))`` with increasing ``f, g,
+    h`` is an orientation-preserving homeomorphism that keeps every chart on a plane of
+    its axis, so the flattened surface stays exactly as (in)jective as it was and bounds
+    the same polycube -- but two planes of different charts can no longer be so close
+    that the structure extraction, which cannot resolve planes closer than the cloud's
+    point spacing, merges them (closing a handle or a thin slot).
+    """
+    X = np.array(Xp, dtype=np.float64, copy=True)
     F = np.asarray(F, dtype=np.int64)
-    decimated = None
-    if len(F) > config.max_faces:
-        dec = decimate(V, F, config.max_faces)
-        if dec is not None:
-            decimated = [int(len(F)), int(len(dec[1]))]
-            V, F = dec
+    for a in range(3):
+        p = np.unique(X[F[labels // 2 == a, 0], a])
+        if len(p) < 2:
+            continue
+        q = p[0] + np.concatenate([[0.0], np.cumsum(np.maximum(np.diff(p), gap))])
+        x = X[:, a]
+        y = np.interp(x, p, q)
+        y = np.where(x < p[0], x, y)
+        y = np.where(x > p[-1], x - p[-1] + q[-1], y)
+        X[:, a] = y
+    return X
+
+
+def _orientations(n: int) -> list[np.ndarray]:
+    """The identity, then ``n`` fixed rotations (turns about the axes, then seeded random ones)."""
+    from scipy.spatial.transform import Rotation
+
+    rots = [np.eye(3)]
+    turns = [("z", 22.5), ("y", 22.5), ("x", 22.5), ("z", 45.0), ("y", 45.0), ("x", 45.0)]
+    for ax, deg in turns[:n]:
+        rots.append(Rotation.from_euler(ax, deg, degrees=True).as_matrix())
+    k = 0
+    while len(rots) < n + 1:
+        rots.append(Rotation.random(random_state=1000 + k).as_matrix())
+        k += 1
+    return rots
+
+
+def _flatten(V: np.ndarray, F: np.ndarray, config: ClassicalConfig, seed: int):
+    """Label, repair, refine and flatten ``(V, F)`` once per compactness retry; returns the
+    attempt with the fewest flipped triangles ``(Vp, Vs, Fs, labels, info)`` and all reports."""
     attempts = []
     best = None
     cfg = config
@@ -805,8 +896,60 @@ def classical_polycube(V: np.ndarray, F: np.ndarray, config: ClassicalConfig = C
         if dmeta["flipped"] == 0:
             break
         cfg = dataclasses.replace(cfg, compactness=cfg.compactness * 2.0)
-    Vp, Vs, Fs, ls, info = best
-    return Vp, Vs, Fs, ls, {"attempts": attempts, "decimated": decimated, **info}
+    return best, attempts
+
+
+def classical_polycube(V: np.ndarray, F: np.ndarray, config: ClassicalConfig = ClassicalConfig(), seed: int = 0):
+    """Label, repair, refine and flatten ``(V, F)`` (canonical frame).
+
+    Flipped triangles of a flattening are relabelled (:func:`relabel_flipped`) and the
+    surface flattened again, up to ``config.fix_rounds`` times; if flips remain, the
+    labelling restarts with doubled compactness (``config.retries`` times).  When the
+    solid the flattened surface bounds (:func:`flat_structure`) is not a valid polycube
+    of the part's genus, all of this is repeated on the part turned by the rotations of
+    :func:`_orientations` (up to ``config.orientations``), until one is.
+
+    Returns ``(Vp, Vs, Fs, labels, meta)``: the flattened vertices (polycube domain), the
+    refined surface's vertices on the part (in the frame of ``V``, whatever the rotation),
+    its faces and labels, and a report (per attempt: labelling checks, flips, times;
+    ``orientation``: the index of the rotation used, ``structure_genus``).  Among the
+    orientations tried, a valid polycube of the right genus wins, then fewer flips.
+    """
+    from .polycube import surface_genus
+
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    decimated = None
+    if len(F) > config.max_faces:
+        dec = decimate(V, F, config.max_faces)
+        if dec is not None:
+            decimated = [int(len(F)), int(len(dec[1]))]
+            V, F = dec
+    try:
+        genus = surface_genus(F)
+    except PolycubeError:
+        genus = None
+    attempts = []
+    chosen = None
+    tried = []
+    for k, R in enumerate(_orientations(max(0, config.orientations))):
+        (Vp, Vs, Fs, ls, info), att = _flatten(V @ R.T, F, config, seed)
+        st = flat_structure(Vp, Fs, ls)
+        ok = st["reason"] is None and (genus is None or st["genus"] == genus)
+        info = {**info, "orientation": k, "structure_genus": st["genus"], "structure_reason": st["reason"]}
+        for a in att:
+            a["orientation"] = k
+        attempts += att
+        tried.append({"orientation": k, "flipped": info["flipped"], "structure_genus": st["genus"],
+                      "structure_reason": st["reason"]})
+        cand = (not ok, info["flipped"], k)
+        if chosen is None or cand < chosen[0]:
+            chosen = (cand, (Vp, Vs @ R, Fs, ls, info))
+        if ok:
+            break
+    Vp, Vs, Fs, ls, info = chosen[1]
+    return Vp, Vs, Fs, ls, {"attempts": attempts, "orientations_tried": tried, "decimated": decimated,
+                            "part_genus": genus, **info}
 
 
 @dataclasses.dataclass
@@ -821,12 +964,35 @@ class ClassicalSource:
         n = int(getattr(config, "n_polycube", 16384))
         Vp, Vs, Fs, ls, meta = classical_polycube(V, F, self.config, seed=seed)
         s = poisson_disk(Vp, Fs, n, seed=seed + 31)
+        meta["plane_gap"] = None
+        if not self._extracts(s.points, DIRECTIONS[ls[s.face_ids]], meta.get("part_genus"), config):
+            # planes too close for the extraction to resolve: space them apart
+            _, areas = face_normals_areas(Vp, Fs)
+            spacing = float(np.sqrt(areas.sum() / (n * np.sqrt(3.0) / 2.0)))
+            gap = max(self.config.min_plane_gap, self.config.plane_gap_spacings * spacing)
+            Vp = space_planes(Vp, Fs, ls, gap)
+            meta["plane_gap"] = gap
+            s = poisson_disk(Vp, Fs, n, seed=seed + 31)
         normals = DIRECTIONS[ls[s.face_ids]]
         meta = {"provenance": "classical", **_plain(meta)}
         return ClassicalCloud(
             s.points, normals, meta=meta,
             polycube_vertices=Vp, surface_vertices=Vs, surface_faces=Fs, face_labels=ls,
         )
+
+
+    @staticmethod
+    def _extracts(points, normals, genus, config) -> bool:
+        """Whether the pipeline's cleanup + structure extraction accept this cloud."""
+        from .cleanup import remove_outliers
+        from .structure import ExtractConfig, extract
+
+        P, N, _ = remove_outliers(points, normals)
+        try:
+            extract(P, N, genus=genus, config=getattr(config, "extract", ExtractConfig()))
+        except PolycubeError:
+            return False
+        return True
 
 
 def _plain(d):

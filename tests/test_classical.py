@@ -130,6 +130,8 @@ def test_curved_parts_become_valid_polycubes_of_their_genus(shape, torus):
     assert meta["flipped"] <= limit
     assert flipped_faces(Vp, Fs, ls).sum() == meta["flipped"]
     assert meta["flipped"] <= meta["flipped_before_untangle"]
+    # the solid the flattened surface bounds, read off directly, has the part's genus at once
+    assert meta["structure_genus"] == genus and meta["orientation"] == 0
     # every chart is exactly flat along its axis
     for k in range(3):
         ax = ls // 2
@@ -188,3 +190,50 @@ def test_cloud_round_trips_through_npz(tmp_path, l_block_canonical):
     np.testing.assert_allclose(back.polycube_vertices, cloud.polycube_vertices)
     assert back.meta["provenance"] == "classical"
     assert back.meta["flipped"] == cloud.meta["flipped"]
+
+
+def _slot_ring(slot: float):
+    """A flat genus-1 polycube (a 3 x 3 x 1 ring) whose hole is only ``slot`` wide along x:
+    what a flattening gives when the two walls of a handle's hole end up on nearly one plane."""
+    from polycubenet.polycube import polycube_surface
+
+    xs = np.array([-0.25 - 0.5 * slot, -0.5 * slot, 0.5 * slot, 0.25 + 0.5 * slot])
+    ys = np.array([-0.3, -0.1, 0.1, 0.3])
+    zs = np.array([-0.05, 0.05])
+    occ = np.ones((3, 3, 1), bool)
+    occ[1, 1, 0] = False
+    V, F = polycube_surface(xs, ys, zs, occ, h=0.05)
+    normals, _ = face_normals_areas(V, F)
+    labels = np.argmax(normals @ DIRECTIONS.T, axis=1)
+    return V, F, labels
+
+
+def _extract_flat(V, F, labels, genus, n=6000):
+    s = uniform_sample(V, F, n, np.random.default_rng(0))
+    return extract(s.points, DIRECTIONS[labels[s.face_ids]], genus=genus)
+
+
+def test_space_planes_keeps_a_pinched_hole_open_for_the_extraction():
+    """Regression (fertility): two charts' planes 0.001 apart (a handle's hole pinched by the
+    flattening) are merged by the extraction, which closes the handle; spacing the planes
+    apart keeps the surface's structure and lets the extraction see the hole."""
+    from polycubenet.classical import flat_structure, space_planes
+    from polycubenet.errors import PolycubeError
+
+    V, F, labels = _slot_ring(0.001)
+    st = flat_structure(V, F, labels)  # read off the surface itself: the hole is there
+    assert st["reason"] is None and st["genus"] == 1
+    with pytest.raises(PolycubeError, match="genus"):
+        _extract_flat(V, F, labels, genus=1)
+    X = space_planes(V, F, labels, gap=0.02)
+    xs = np.unique(X[F[labels // 2 == 0, 0], 0])
+    assert np.diff(xs).min() >= 0.02 - 1e-12
+    # a monotone per-axis map: charts stay planar, nothing flips, same structure
+    for k in range(3):
+        np.testing.assert_allclose(X[F[:, k], labels // 2], X[F[:, 0], labels // 2], atol=1e-12)
+    assert flipped_faces(X, F, labels).sum() == 0
+    assert flat_structure(X, F, labels)["genus"] == 1
+    poly = _extract_flat(X, F, labels, genus=1)
+    assert poly.meta["genus"] == 1
+    # planes already far apart do not move
+    np.testing.assert_allclose(space_planes(X, F, labels, gap=0.02), X)
