@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 from polycubenet.atomic import write_json
+from polycubenet.library import discover
 from polycubenet.errors import PartError, PolycubeError
 from polycubenet.pipeline import PipelineConfig, mesh_part
 
@@ -88,7 +89,8 @@ def main(argv=None) -> int:
 
     ref_path = args.hexgen / "reference.json"
     reference = json.loads(ref_path.read_text()) if ref_path.exists() else {}
-    files = sorted(args.hexgen.glob("*.obj")) + sorted(args.parts.glob("*.stl"))
+    # the example parts as the flow finds them (a STEP file wins over an STL of the same stem)
+    files = sorted(args.hexgen.glob("*.obj")) + discover([args.parts])
     if args.models:
         files = [f for f in files if f.stem in args.models]
     src, why_not = learned_source()
