@@ -80,6 +80,10 @@ DIRECTIONS = np.array(
 )
 
 
+#: version of the construction, part of the flow's cache key for classical clouds: bump it when a
+#: change to this module changes its output for the same settings
+VERSION = "2"  # 2: orientations, plane spacing, decimation above 16000 triangles only
+
 @dataclasses.dataclass(frozen=True)
 class ClassicalConfig:
     """Parameters of the classical polycube (lengths relative to the canonical diagonal 1).

@@ -282,6 +282,11 @@ def source_extra(kind: str, part_path: str | os.PathLike, checkpoint: str | os.P
         return {"sidecar": file_hash(sc) if sc.is_file() else None}
     if kind == "learned":
         return {"checkpoint": file_hash(checkpoint) if checkpoint and Path(checkpoint).is_file() else str(checkpoint)}
+    if kind == "classical" and classical_available():
+        # the construction's settings and version: a cached classical cloud made by older code is not reused
+        from .classical import VERSION, ClassicalConfig
+
+        return {"classical": ClassicalConfig(), "version": VERSION}
     return {}
 
 

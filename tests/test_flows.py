@@ -145,6 +145,21 @@ def test_keys_change_only_downstream_of_a_changed_parameter():
     assert fallback["load_sample"] == base["load_sample"] and fallback["polycube"] != base["polycube"]
 
 
+def test_classical_cloud_key_follows_the_construction_version(monkeypatch, tmp_path):
+    """A cached classical cloud made by older code (or other settings) must not be reused."""
+    from polycubenet import classical
+
+    def key():
+        params = library.stage_params(PipelineConfig(**SMALL), polycube="classical",
+                                      polycube_extra=library.source_extra("classical", tmp_path / "p.stl"))
+        return library.chain_keys("h" * 64, params)
+
+    before = key()
+    monkeypatch.setattr(classical, "VERSION", classical.VERSION + "-next")
+    after = key()
+    assert after["load_sample"] == before["load_sample"] and after["polycube"] != before["polycube"]
+
+
 def test_polycube_to_frame_follows_a_signed_permutation():
     rng = np.random.default_rng(0)
     occ = rng.random((2, 3, 4)) > 0.3
