@@ -734,7 +734,7 @@ class ClassicalCloud(PolycubeCloud):
             np.asarray(self.polycube_vertices, float),
             np.asarray(self.surface_faces, np.int64),
             np.asarray(self.surface_vertices, float),
-            meta={"method": "classical (exact, barycentric on the flattened surface)"},
+            meta={"method": f"{self.meta.get('provenance', 'classical')} (exact, barycentric on the flattened surface)"},
         )
 
 

@@ -16,16 +16,25 @@ in the part's canonical frame:
   polycube from the surface itself; its cloud carries the exact map polycube -> part
   (``cloud.correspondence()``), which then replaces registration.
 
-**Hybrid policy** (``PipelineConfig.polycube``):
+**Hybrid policy** (``PipelineConfig.polycube``): the sources of :func:`source_chain` are
+tried in order.
 
 * ``"learned"`` -- the injected source alone (a failed polycube is final for the part);
-* ``"classical"`` -- the classical polycube alone (the injected source is not called);
-* ``"auto"`` -- the injected source first; when it raises
-  :class:`~polycubenet.errors.PolycubeError` or its polycube fails validation at
-  extraction (not a closed manifold solid, genus different from the part's, cloud far
-  from the polycube, surface not covered), the classical polycube is built instead.
-  ``PartResult.provenance`` says which one was used and ``PartResult.fallback_reason``
-  why the first one was rejected; both go to the manifest row and ``quality.json``.
+* ``"classical"`` -- the classical polycube (the injected source is not called), then, as a
+  last resort, the voxel polycube (:mod:`polycubenet.voxel`: the cells of a grid inside the
+  part, which exists for every closed part but follows its features less well);
+* ``"voxel"`` -- the voxel polycube alone;
+* ``"auto"`` -- the injected source first, then the classical chain.
+
+A source is left for the next one when it raises
+:class:`~polycubenet.errors.PolycubeError`, when its polycube fails validation at
+extraction (not a closed manifold solid, genus different from the part's, cloud far
+from the polycube, surface not covered), or when its pulled-back hex mesh is not valid
+(an inverted or degenerate hex).  The first valid mesh is kept; when none is, the mesh
+with the highest minimum scaled Jacobian (reported as not valid).
+``PartResult.provenance`` says which polycube was used and ``PartResult.fallback_reason``
+why the ones before it were left (``"<stage>: <reason>"``, joined by ``"; "``); both go to
+the manifest row and ``quality.json``.
 
 Errors: a :class:`~polycubenet.errors.PartError` (bad input) or
 :class:`~polycubenet.errors.PolycubeError` (the polycube failed validation) propagates
@@ -55,6 +64,7 @@ from .quality import QualityReport, quality_report
 from .registration import align
 from .sampling import poisson_disk, uniform_sample
 from .structure import ExtractConfig, extract
+from .voxel import VoxelConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,8 +79,9 @@ class PipelineConfig:
     target_hexes : approximate hex count (``target_size`` wins when set)
     target_size : element edge length relative to the part's bounding-box diagonal
     seed : every random choice of the run derives from it
-    polycube : ``"learned"``, ``"classical"`` or ``"auto"`` (see the module docstring);
-        ``"learned"`` by default so an injected source is used exactly as given
+    polycube : ``"learned"``, ``"classical"``, ``"voxel"`` or ``"auto"`` (see the module
+        docstring); ``"learned"`` by default so an injected source is used exactly as given
+    classical, voxel : the settings of the classical and voxel polycubes
     """
 
     n_sample: int = 4096
@@ -83,10 +94,43 @@ class PipelineConfig:
     pullback: PullbackConfig = PullbackConfig()
     polycube: str = "learned"
     classical: ClassicalConfig = ClassicalConfig()
+    voxel: VoxelConfig = VoxelConfig()
 
 
 #: the values of ``PipelineConfig.polycube`` (and of the command-line ``--polycube``)
-POLYCUBE_MODES = ("auto", "learned", "classical")
+POLYCUBE_MODES = ("auto", "learned", "classical", "voxel")
+
+
+def source_chain(source, config: PipelineConfig) -> list[tuple[str, Callable]]:
+    """The polycube sources :func:`mesh_surface` tries in order, as ``(name, source)``.
+
+    ``learned``: the injected source alone (the classical chain when it is None);
+    ``classical``: the surface-flattening construction, then the voxel polycube;
+    ``voxel``: the voxel polycube alone; ``auto``: the injected source, then the classical chain.
+    """
+    from .voxel import VoxelSource
+
+    classical = [("classical", ClassicalSource(config.classical)), ("voxel", VoxelSource(config.voxel))]
+    if config.polycube == "voxel":
+        return classical[1:]
+    if config.polycube == "classical" or source is None:
+        return classical
+    if config.polycube == "auto":
+        return [("learned", source)] + classical
+    return [("learned", source)]
+
+
+def mesh_rank(meta: dict) -> tuple:
+    """Order of pulled-back meshes (``HexMesh.meta``): a valid one first, then the higher minimum SJ."""
+    sj = meta.get("sj_min")
+    return (bool(meta.get("valid")), -np.inf if sj is None else float(sj))
+
+
+def invalid_mesh_reason(label: str, meta: dict) -> str:
+    """Why a pulled-back mesh made the pipeline try the next polycube (one sentence)."""
+    sj = meta.get("sj_min")
+    sj = "unknown" if sj is None else f"{float(sj):.3f}"
+    return f"the {label} polycube's hex mesh is not valid (minimum scaled Jacobian {sj})"
 
 
 class PolycubeSource(Protocol):
@@ -231,39 +275,58 @@ def mesh_surface(
             sample = poisson_disk(Vc, F, config.n_sample, seed=config.seed)
         if config.polycube not in POLYCUBE_MODES:
             raise ValueError(f"polycube must be one of {POLYCUBE_MODES}; got {config.polycube!r}")
-        classical = ClassicalSource(config.classical)
-        use_classical = config.polycube == "classical" or source is None
-        first = classical if use_classical else source
-        try:
-            cloud, P, N, poly = _polycube_stages(first, sample, Vc, F, genus, config, name, clock, res)
-        except PolycubeError as exc:
-            if config.polycube != "auto" or use_classical:
-                raise
-            failed_stage = clock.stage
-            res.fallback_reason = f"{failed_stage}: {exc.reason}"
-            res.timings["rejected_" + failed_stage] = res.timings.pop(failed_stage, 0.0)
-            for k in ("polycube", "cleanup", "extract"):
-                if k in res.timings:
-                    res.timings["rejected_" + k] = res.timings.pop(k)
-            cloud, P, N, poly = _polycube_stages(classical, sample, Vc, F, genus, config, name, clock, res)
+        chain = source_chain(source, config)
+        best = None  # (key, attempt) of the best pulled-back mesh so far
+        reasons = []
+        attempts_timings = []
+        for i, (label, src) in enumerate(chain):
+            last = i == len(chain) - 1
+            t_att: dict = {}
+            clock.timings = t_att
+            try:
+                cloud, P, N, poly = _polycube_stages(src, sample, Vc, F, genus, config, name, clock, res)
+            except PolycubeError as exc:
+                if last and best is None:
+                    exc.fallback_reason = "; ".join(reasons) or None
+                    raise
+                reasons.append(f"{clock.stage}: {exc.reason}")
+                attempts_timings.append((False, t_att))
+                continue
+            with clock("register"):
+                if hasattr(cloud, "correspondence"):  # classical and voxel polycubes know their map exactly
+                    corr = cloud.correspondence()
+                else:
+                    rng = np.random.default_rng(config.seed + 5)
+                    sub = rng.choice(len(P), size=min(config.n_register, len(P)), replace=False)
+                    corr = align(sample, P[sub], N[sub])
+            with clock("partition"):
+                if config.target_size is not None:
+                    mesh_pc = partition(poly, target_size=config.target_size)
+                else:
+                    mesh_pc = partition(poly, target_hexes=config.target_hexes)
+            with clock("pullback"):
+                if hasattr(cloud, "correspondence"):
+                    mesh_c = _pull_back_classical(mesh_pc, corr, Vc, F, config)
+                else:
+                    mesh_c = pull_back(mesh_pc, corr.map_points, Vc, F, config.pullback)
+            attempt = (cloud, poly, mesh_c, t_att, len(attempts_timings))
+            attempts_timings.append((True, t_att))
+            key = mesh_rank(mesh_c.meta)
+            if best is None or key > best[0]:
+                best = (key, attempt)
+            if mesh_c.meta.get("valid") or last:
+                break
+            reasons.append(f"pullback: {invalid_mesh_reason(cloud.meta.get('provenance') or label, mesh_c.meta)}")
+        cloud, poly, mesh_c, t_kept, kept_index = best[1]
+        # the kept attempt's timings under their own names, the others' summed as rejected_<stage>
+        clock.timings = timings
+        for j, (_, t_att) in enumerate(attempts_timings):
+            for k, v in t_att.items():
+                name_k = k if j == kept_index else "rejected_" + k
+                timings[name_k] = timings.get(name_k, 0.0) + v
+        res.cloud, res.polycube = cloud, poly
         res.provenance = cloud.meta.get("provenance")
-        with clock("register"):
-            if hasattr(cloud, "correspondence"):  # the classical path knows its map exactly
-                corr = cloud.correspondence()
-            else:
-                rng = np.random.default_rng(config.seed + 5)
-                sub = rng.choice(len(P), size=min(config.n_register, len(P)), replace=False)
-                corr = align(sample, P[sub], N[sub])
-        with clock("partition"):
-            if config.target_size is not None:
-                mesh_pc = partition(poly, target_size=config.target_size)
-            else:
-                mesh_pc = partition(poly, target_hexes=config.target_hexes)
-        with clock("pullback"):
-            if hasattr(cloud, "correspondence"):
-                mesh_c = _pull_back_classical(mesh_pc, corr, Vc, F, config)
-            else:
-                mesh_c = pull_back(mesh_pc, corr.map_points, Vc, F, config.pullback)
+        res.fallback_reason = "; ".join(reasons) or None
         with clock("report"):
             mesh = HexMesh(T.inverse(mesh_c.points), mesh_c.hexes, mesh_c.boundary, meta=dict(mesh_c.meta))
             Vo = np.asarray(V, float) if not canonical else Vc

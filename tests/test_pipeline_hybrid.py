@@ -114,3 +114,73 @@ def test_classical_mode_and_no_source(l_block_file):
 def test_unknown_mode_is_rejected(l_block_file):
     with pytest.raises(ValueError, match="polycube must be one of"):
         mesh_part(l_block_file, _Raises(), PipelineConfig(polycube="magic", **SMALL))
+
+
+def _invalid_first(monkeypatch, label: str, sj: float = -0.2):
+    """Make the pullback of the ``label`` polycube come out invalid (as fertility's classical
+    flattening does), leaving every other pullback as it is."""
+    from polycubenet import pipeline
+
+    real = pipeline._pull_back_classical
+
+    def pull(mesh_pc, corr, Vc, F, config):
+        mesh = real(mesh_pc, corr, Vc, F, config)
+        if corr.meta["method"].startswith(label):
+            mesh.meta.update(valid=False, sj_min=sj)
+        return mesh
+
+    monkeypatch.setattr(pipeline, "_pull_back_classical", pull)
+
+
+def test_classical_mode_falls_back_to_the_voxel_polycube_when_its_mesh_is_invalid(l_block_file, monkeypatch):
+    _invalid_first(monkeypatch, "classical")
+    res = mesh_part(l_block_file, _MustNotRun(), PipelineConfig(polycube="classical", **SMALL))
+    assert res.provenance == "voxel" and res.status == "meshed"
+    assert res.fallback_reason.startswith("pullback: the classical polycube's hex mesh is not valid")
+    assert "-0.200" in res.fallback_reason
+    assert res.report.to_dict()["valid"]
+    assert res.polycube.meta["provenance"] == "voxel"
+    # the rejected attempt's time is kept apart from the kept one's
+    assert {"rejected_polycube", "rejected_pullback", "polycube", "pullback"} <= set(res.timings)
+    assert res.row()["provenance"] == "voxel"
+
+
+def test_when_no_polycube_gives_a_valid_mesh_the_best_one_is_kept(l_block_file, monkeypatch):
+    from polycubenet import pipeline
+
+    real = pipeline._pull_back_classical
+
+    def pull(mesh_pc, corr, Vc, F, config):  # both invalid; the classical one less so
+        mesh = real(mesh_pc, corr, Vc, F, config)
+        voxel = mesh_pc.meta.get("source") == "voxel"
+        mesh.meta.update(valid=False, sj_min=-0.5 if voxel else -0.1)
+        return mesh
+
+    def tagged_partition(poly, **kw):
+        from polycubenet.hexmesh import partition
+
+        m = partition(poly, **kw)
+        m.meta["source"] = poly.meta.get("provenance")
+        return m
+
+    monkeypatch.setattr(pipeline, "_pull_back_classical", pull)
+    monkeypatch.setattr(pipeline, "partition", tagged_partition)
+    res = mesh_part(l_block_file, _MustNotRun(), PipelineConfig(polycube="classical", **SMALL))
+    assert res.provenance == "classical"
+    assert res.mesh.meta["sj_min"] == pytest.approx(-0.1)
+    assert "classical polycube's hex mesh is not valid" in res.fallback_reason
+
+
+def test_a_rejected_classical_polycube_falls_back_to_the_voxel_one(l_block_file, monkeypatch):
+    from polycubenet import classical
+
+    def refuse(self, sample, V, F, config):
+        raise PolycubeError("l_block.stl: flattening folded")
+
+    monkeypatch.setattr(classical.ClassicalSource, "__call__", refuse)
+    res = mesh_part(l_block_file, _Raises(), PipelineConfig(polycube="auto", **SMALL))
+    assert res.provenance == "voxel" and res.report.to_dict()["valid"]
+    assert res.fallback_reason == "polycube: model produced no usable cloud; polycube: l_block.stl: flattening folded"
+    # learned alone and voxel alone
+    res = mesh_part(l_block_file, _MustNotRun(), PipelineConfig(polycube="voxel", **SMALL))
+    assert res.provenance == "voxel" and res.fallback_reason is None

@@ -1,0 +1,139 @@
+"""The voxel polycube: occupancy, repairs, images on the part, the cloud and a full pullback."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import trimesh
+
+from polycubenet.classical import DIRECTIONS, ClassicalCloud
+from polycubenet.cleanup import remove_outliers
+from polycubenet.errors import PolycubeError
+from polycubenet.frame import canonicalize, face_normals_areas
+from polycubenet.hexmesh import enclosed_volume, partition
+from polycubenet.pipeline import PipelineConfig
+from polycubenet.polycube import check_occupancy, edge_contacts, nonmanifold_vertices, surface_genus
+from polycubenet.pullback import pull_back
+from polycubenet.structure import extract
+from polycubenet.voxel import (
+    VERSION,
+    VoxelConfig,
+    VoxelSource,
+    _scene,
+    repair_occupancy,
+    voxel_polycube,
+)
+
+# a smaller cloud and a narrower resolution range keep the tests fast
+FAST = VoxelConfig(min_cells=8, max_cells=20, n_points=4096, extra_steps=0)
+
+
+def _canon(m):
+    V, F = np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
+    Vc, _ = canonicalize(V, F)
+    return Vc, F
+
+
+@pytest.fixture(scope="module")
+def torus_c():
+    return _canon(trimesh.creation.torus(1.0, 0.4, major_sections=40, minor_sections=20))
+
+
+@pytest.fixture(scope="module")
+def dumbbell_c():
+    """Two blocks joined by a bar much thinner than a coarse cell (genus 0)."""
+    a = trimesh.creation.box(bounds=[[0, 0, 0], [1, 1, 1]])
+    b = trimesh.creation.box(bounds=[[3, 0, 0], [4, 1, 1]])
+    bar = trimesh.creation.box(bounds=[[0.9, 0.45, 0.45], [3.1, 0.55, 0.55]])
+    m = trimesh.boolean.union([a, b, bar], engine="manifold")
+    m = m.subdivide_to_size(0.2)
+    return _canon(m)
+
+
+def _distance_to(V, F, X):
+    import open3d as o3d
+
+    r = _scene(V, F).compute_closest_points(o3d.core.Tensor(np.asarray(X, np.float32)))
+    return np.linalg.norm(r["points"].numpy() - X, axis=1)
+
+
+def test_repair_removes_edge_and_vertex_contacts():
+    occ = np.zeros((4, 4, 4), bool)
+    occ[1, 1, 1] = occ[2, 2, 1] = True  # edge-only contact
+    occ3 = np.zeros((4, 4, 4), bool)
+    occ3[1, 1, 1] = occ3[2, 2, 2] = True  # vertex-only contact
+    for o in (occ, occ3):
+        assert check_occupancy(o) is not None
+        frac = np.random.default_rng(0).random(o.shape)
+        fixed, rep = repair_occupancy(o, frac)
+        assert check_occupancy(fixed) is None
+        assert len(edge_contacts(fixed)) == 0 and len(nonmanifold_vertices(fixed)) == 0
+        assert (fixed >= o).all()  # repairs only add cells here (one component after adding)
+        assert rep["added"] >= 1
+
+
+def test_torus_voxel_polycube_has_the_parts_genus_and_images_on_the_part(torus_c):
+    V, F = torus_c
+    Vp, Vs, Fs, labels, meta = voxel_polycube(V, F, FAST)
+    assert meta["genus"] == 1 == meta["part_genus"]
+    assert surface_genus(Fs) == 1
+    # outward, axis-aligned triangles with the classical label convention
+    assert enclosed_volume(Vp, Fs) > 0
+    n, _ = face_normals_areas(Vp, Fs)
+    np.testing.assert_allclose(n, DIRECTIONS[labels], atol=1e-9)
+    # images on the part, and close to their voxel vertex (within a couple of cells)
+    assert _distance_to(V, F, Vs).max() < 1e-4
+    assert np.linalg.norm(Vs - Vp, axis=1).max() < 2.0 * meta["cell_size"]
+    assert meta["flipped"] == 0
+    import json
+
+    json.dumps(meta)  # JSON-able
+    assert VERSION == "1"
+
+
+def test_too_coarse_a_range_is_rejected(torus_c):
+    V, F = torus_c
+    with pytest.raises(PolycubeError):
+        voxel_polycube(V, F, dataclasses.replace(FAST, min_cells=2, max_cells=3))
+
+
+def test_thin_bar_survives(dumbbell_c):
+    V, F = dumbbell_c
+    Vp, Vs, Fs, labels, meta = voxel_polycube(V, F, FAST)
+    assert meta["genus"] == 0
+    # the bar (much thinner than a cell at this resolution) is in the voxel solid: every point
+    # of the part is near the voxel boundary, in particular the middle of the bar
+    h = meta["cell_size"]
+    assert _distance_to(Vp, Fs, V).max() <= 2.0 * h
+    mid = V[np.argmin(np.abs(V[:, 0]))]  # canonical frame: the bar's middle is at x = 0
+    assert _distance_to(Vp, Fs, mid[None])[0] <= 2.0 * h
+    assert _distance_to(V, F, Vs).max() < 1e-4
+
+
+def test_source_cloud_extracts_and_pulls_back_valid(torus_c):
+    V, F = torus_c
+    cfg = PipelineConfig(n_polycube=4096, target_hexes=1000)
+    cloud = VoxelSource(dataclasses.replace(FAST, n_points=cfg.n_polycube))(None, V, F, cfg)
+    assert isinstance(cloud, ClassicalCloud)
+    assert cloud.meta["provenance"] == "voxel"
+    assert len(cloud.points) == cfg.n_polycube
+    P, N, _ = remove_outliers(cloud.points, cloud.normals)
+    poly = extract(P, N, genus=1, config=cfg.extract)
+    assert poly.meta["genus"] == 1
+    corr = cloud.correspondence()
+    # the map sends the voxel boundary vertices onto the part, points between them onto the
+    # image triangles (chords of the part, so within a fraction of a cell of it)
+    assert _distance_to(V, F, corr.map_points(cloud.polycube_vertices)).max() < 1e-4
+    assert _distance_to(V, F, corr.map_points(cloud.points[::16])).max() < 0.25 * cloud.meta["cell_size"]
+    mesh_pc = partition(poly, target_hexes=cfg.target_hexes)
+    best = None
+    for mode in ("harmonic", "correction"):  # as pipeline._pull_back_classical
+        mesh = pull_back(mesh_pc, corr.map_points, V, F, dataclasses.replace(cfg.pullback, interior=mode))
+        if best is None or mesh.meta["sj_min"] > best.meta["sj_min"]:
+            best = mesh
+        if best.meta.get("valid"):
+            break
+    assert best.meta["valid"], best.meta.get("warnings")
+    assert best.meta["sj_min"] > 0
