@@ -69,7 +69,7 @@ def run_one(path: Path, source, mode: str, hexes: int, pictures: Path) -> dict:
         "provenance": row["provenance"], "fallback_reason": row["fallback_reason"],
         "genus": row["genus"], "polycube_grid": list(res.polycube.occupancy.shape),
         "flipped": cm.get("flipped"), "charts": cm.get("charts"), "turning_points": cm.get("turning_points"),
-        "decimated": cm.get("decimated"),
+        "decimated": cm.get("decimated"), "voxel_resolution": cm.get("resolution"),
     }
 
 
@@ -124,7 +124,8 @@ def main(argv=None) -> int:
             rows[f.stem] = r
             print(f"{mode:9s} {f.stem:16s} {r['status']:7s} valid={fmt(r.get('valid'))} min={fmt(r.get('sj_min'))} "
                   f"avg={fmt(r.get('sj_avg'))} hexes={fmt(r.get('hexes'))} H={fmt(r.get('hausdorff'), 4)} "
-                  f"t={r['time']:.1f}s flips={fmt(r.get('flipped'))} {r.get('error') or ''}", flush=True)
+                  f"t={r['time']:.1f}s flips={fmt(r.get('flipped'))} polycube={r.get('provenance')} "
+                  f"{r.get('error') or r.get('fallback_reason') or ''}", flush=True)
             write_json(args.out, out)
 
     # summary tables

@@ -1,7 +1,7 @@
 """``polycubenet``: the command line of the meshing service.
 
     polycubenet mesh INPUT... -o OUT [--formats vtu,inp] [--size S | --hexes N] [--workers N]
-                                     [--dask-address HOST:PORT] [--polycube auto|learned|classical|oracle]
+                                     [--dask-address HOST:PORT] [--polycube auto|learned|classical|voxel|oracle]
     polycubenet retry OUT            re-run the failed parts of OUT (earlier stages from the cache)
     polycubenet scan DROP -o OUT     mesh what is new or changed in DROP
     polycubenet train --data DIR --run DIR --publish DIR [--steps N] [--count K]
@@ -39,10 +39,11 @@ def _parser() -> argparse.ArgumentParser:
         size = p.add_mutually_exclusive_group()
         size.add_argument("--size", type=float, default=None, help="element size, relative to the part's diagonal")
         size.add_argument("--hexes", type=int, default=None, help="approximate hexes per part (default 5000)")
-        p.add_argument("--polycube", choices=("auto", "learned", "classical", "oracle"), default="auto",
-                       help="auto (default): the model's polycube, the classical one where it fails validation; "
-                            "learned: the model's only; classical: built from the surface; oracle: synthetic "
-                            "parts' ground-truth sidecars")
+        p.add_argument("--polycube", choices=("auto", "learned", "classical", "voxel", "oracle"), default="auto",
+                       help="auto (default): the model's polycube, the classical chain where it fails validation or "
+                            "gives an invalid mesh; learned: the model's only; classical: built from the surface, "
+                            "then the voxel polycube as a last resort; voxel: the voxel polycube only; oracle: "
+                            "synthetic parts' ground-truth sidecars")
         p.add_argument("--no-fallback", action="store_true", help="no classical fallback (auto becomes learned)")
         p.add_argument("--checkpoint", default=None, help="model checkpoint (default: the shipped one)")
         p.add_argument("--steps", type=int, default=None, help="DDIM steps")

@@ -33,7 +33,7 @@ from prefect_dask import DaskTaskRunner
 
 from polycubenet import library
 from polycubenet.errors import PartError, PolycubeError
-from polycubenet.pipeline import PipelineConfig
+from polycubenet.pipeline import PipelineConfig, invalid_mesh_reason, mesh_rank
 from tasks import mesh as T
 from tasks.common import results_dir
 
@@ -54,10 +54,25 @@ class _Part:
     stage: str = "load_sample"
     error: str | None = None
     fallback: str | None = None
+    #: pulled-back meshes of earlier sources that were not valid: ``{source, keys, records, quality}``
+    candidates: list = dataclasses.field(default_factory=list)
+    #: seconds spent on the polycube sources that were left (per stage)
+    rejected_seconds: dict = dataclasses.field(default_factory=dict)
 
     @property
     def source(self) -> str:
         return self.sources[0]
+
+
+def source_chain(polycube: str, fallback: bool) -> list[str]:
+    """The polycube sources a part tries in order: ``classical`` is always followed by the
+    voxel polycube (its last resort); ``learned`` and ``oracle`` by both with ``fallback``."""
+    if polycube == "voxel":
+        return ["voxel"]
+    rest = ["classical", "voxel"] if library.classical_available() else ["voxel"]
+    if polycube == "classical":
+        return rest
+    return [polycube] + (rest if fallback else [])
 
 
 def _slug(name: str) -> str:
@@ -93,10 +108,12 @@ def mesh_library(
     inputs : files, folders or glob patterns
     out : output folder (``<out>/<part>/hex.<fmt>``, ``manifest.json``, ``report.html``)
     formats : hex formats among vtu, vtk, mesh, inp, msh, bdf
-    polycube : ``auto`` (the model, then the classical construction for a part whose learned
-        polycube fails validation: ``learned`` with ``fallback=True``), ``learned`` (the model),
-        ``oracle`` (synthetic parts' sidecars), ``classical``
-    fallback : try the classical construction where the polycube fails validation (``auto`` always does)
+    polycube : ``auto`` (the model, then the classical chain for a part whose learned polycube
+        fails validation or gives an invalid mesh: ``learned`` with ``fallback=True``),
+        ``learned`` (the model), ``oracle`` (synthetic parts' sidecars), ``classical`` (the
+        surface-flattening polycube, then the voxel polycube as a last resort), ``voxel``
+    fallback : after a ``learned`` / ``oracle`` polycube that fails validation or whose hex mesh
+        is not valid, try the classical chain (``auto`` always does)
     n_sample, n_polycube, n_register, target_hexes, target_size, seed : :class:`PipelineConfig`
     checkpoint, steps, point_budget, device : the model (``polycube="learned"``; budget: condition +
         output points of one generation batch, default ``inference.DEFAULT_POINT_BUDGET``)
@@ -115,8 +132,8 @@ def mesh_library(
     bad = [f for f in formats if f not in library.HEX_FORMATS]
     if bad:
         raise ValueError(f"unknown hex formats {bad}; expected some of {library.HEX_FORMATS}")
-    if polycube not in ("auto", "learned", "oracle", "classical"):
-        raise ValueError(f"unknown polycube source {polycube!r}; expected auto, learned, oracle or classical")
+    if polycube not in ("auto", "learned", "oracle", "classical", "voxel"):
+        raise ValueError(f"unknown polycube source {polycube!r}; expected auto, learned, oracle, classical or voxel")
     if polycube == "auto":
         polycube, fallback = "learned", True
     config = PipelineConfig(n_sample=n_sample, n_polycube=n_polycube, n_register=n_register,
@@ -134,7 +151,7 @@ def mesh_library(
     paths = library.discover(inputs)
     hashes = [library.file_hash(p) for p in paths]
     names = library.part_names(paths, hashes)
-    sources = [polycube] + (["classical"] if fallback and polycube != "classical" and library.classical_available() else [])
+    sources = source_chain(polycube, fallback)
     parts: list[_Part] = []
     for p, h, n in zip(paths, hashes, names):
         params = library.stage_params(config, polycube=polycube,
@@ -241,20 +258,63 @@ def mesh_library(
             hook({"part": part.name, "status": status, "stage": part.stage, "error": error,
                   "done": progress.done, "failed": progress.failed, "total": progress.total})
 
+    def next_source(part: _Part, reason: str):
+        """Leave the part's current polycube source for the next one (its stages have their own keys)."""
+        logger.warning(f"{part.name}: {reason}; trying the {part.sources[1]} polycube")
+        part.fallback = f"{part.fallback}; {reason}" if part.fallback else reason
+        for s in ("polycube", "extract", "register", "pullback"):
+            rec = part.records.pop(s, None)
+            if rec is not None:
+                part.rejected_seconds[s] = part.rejected_seconds.get(s, 0.0) + float(rec.get("seconds") or 0.0)
+        part.sources = part.sources[1:]
+        params = library.stage_params(config, polycube=part.source,
+                                      polycube_extra=library.source_extra(part.source, part.path, checkpoint),
+                                      load_kw=load_kw, formats=formats, out_dir=str(out_p / part.name))
+        part.keys = library.chain_keys(part.hash, params)
+        start_polycube(part)
+
+    def export(part: _Part, quality: dict | None = None):
+        """Export the part's current pulled-back mesh, or the best earlier one when that is better
+        (``pipeline.mesh_rank``: a valid mesh first, then the higher minimum scaled Jacobian)."""
+        current = None
+        if quality is not None:
+            current = {"source": part.source, "keys": dict(part.keys), "records": dict(part.records), "quality": quality}
+        options = part.candidates + ([current] if current else [])
+        best = max(options, key=lambda c: mesh_rank(c["quality"]))
+        if best is not current:
+            if current is not None:
+                part.fallback += f"; pullback: {invalid_mesh_reason(current['source'], quality)}"
+            part.fallback += (f"; no polycube gave a valid mesh: kept the {best['source']} one's "
+                              "(the highest minimum scaled Jacobian)")
+            if current is not None:
+                for s in ("polycube", "extract", "register", "pullback"):
+                    rec = part.records.get(s)
+                    if rec is not None:
+                        part.rejected_seconds[s] = part.rejected_seconds.get(s, 0.0) + float(rec.get("seconds") or 0.0)
+            for s, rec in best["records"].items():  # counted as rejected when it was left; kept now
+                if s in part.rejected_seconds:
+                    part.rejected_seconds[s] = max(0.0, part.rejected_seconds[s] - float(rec.get("seconds") or 0.0))
+            part.keys, part.records = best["keys"], {**part.records, **best["records"]}
+            part.sources = [best["source"]]
+        submit(part, "export", tasks["report_export"], hexc=part.records["pullback"]["path"],
+               extracted=part.records["extract"]["path"], loaded=part.records["load_sample"]["path"],
+               out_dir=str(out_p / part.name), formats=formats)
+
     def fail_or_fall_back(part: _Part, stage: str, exc: BaseException):
         msg = f"{type(exc).__name__}: {exc}"
-        if isinstance(exc, PolycubeError) and stage in ("polycube", "extract") and len(part.sources) > 1:
-            logger.warning(f"{part.name}: {part.source} polycube rejected at {stage} ({exc}); trying {part.sources[1]}")
-            part.fallback = f"{part.source} polycube rejected at {stage}: {exc}"
-            part.sources = part.sources[1:]
-            params = library.stage_params(config, polycube=part.source,
-                                          polycube_extra=library.source_extra(part.source, part.path, checkpoint),
-                                          load_kw=load_kw, formats=formats, out_dir=str(out_p / part.name))
-            part.keys = library.chain_keys(part.hash, params)
-            for s in ("polycube", "extract"):
-                part.records.pop(s, None)
-            start_polycube(part)
-            return
+        if isinstance(exc, PolycubeError) and stage in ("polycube", "extract"):
+            if len(part.sources) > 1:
+                next_source(part, f"{part.source} polycube rejected at {stage}: {exc}")
+                return
+            if part.candidates:  # an earlier source's mesh (not valid) is still better than none
+                reason = f"{part.source} polycube rejected at {stage}: {exc}"
+                part.fallback = f"{part.fallback}; {reason}" if part.fallback else reason
+                for s in ("polycube", "extract"):
+                    rec = part.records.pop(s, None)
+                    if rec is not None:
+                        part.rejected_seconds[s] = part.rejected_seconds.get(s, 0.0) + float(rec.get("seconds") or 0.0)
+                export(part)
+                return
         if not isinstance(exc, (PartError, PolycubeError)):
             logger.error(f"{part.name}: unexpected failure at {stage}: {msg}")
         finish(part, "failed", msg)
@@ -296,8 +356,13 @@ def mesh_library(
                 submit(part, "pullback", tasks["partition_pullback"], extracted=extracted,
                        corr=value["path"], loaded=loaded, dest=path_of(part, "pullback"), config=config)
             elif stage == "pullback":
-                submit(part, "export", tasks["report_export"], hexc=value["path"], extracted=extracted,
-                       loaded=loaded, out_dir=str(out_p / part.name), formats=formats)
+                quality = library.pullback_quality(value["path"])
+                if not quality["valid"] and len(part.sources) > 1:
+                    part.candidates.append({"source": part.source, "keys": dict(part.keys),
+                                            "records": dict(part.records), "quality": quality})
+                    next_source(part, f"pullback: {invalid_mesh_reason(part.source, quality)}")
+                else:
+                    export(part, quality)
             elif stage == "export":
                 finish(part, "meshed")
         if polycube == "learned" or any(p.source == "learned" for p in gen_pool):
@@ -334,7 +399,8 @@ def _row(part: _Part, out: Path, run_id: str | None) -> dict:
         "name": part.name, "path": str(part.path), "hash": part.hash, "status": part.status,
         "stage": "export" if part.status == "meshed" else part.stage, "error": part.error,
         "provenance": None, "fallback": part.fallback,
-        "timings": {s: r["seconds"] for s, r in part.records.items()},
+        "timings": {**{s: r["seconds"] for s, r in part.records.items()},
+                    **{f"rejected_{s}": round(v, 4) for s, v in part.rejected_seconds.items()}},
         "computed": [s for s, r in part.records.items() if r.get("flow_run") == run_id],
         "reused": [s for s, r in part.records.items() if r.get("flow_run") != run_id],
         "quality": None, "files": [], "keys": dict(part.keys), "out": part.name,

@@ -259,10 +259,10 @@ def classical_available() -> bool:
 
 
 def make_source(kind: str, part_path: str | os.PathLike, transform):
-    """A per-part polycube source by name: ``oracle`` or ``classical``.
+    """A per-part polycube source by name: ``oracle``, ``classical`` or ``voxel``.
 
     (``learned`` is not made here: the flow runs the model in batches across parts.)
-    This is the one place the classical fallback plugs in.
+    This is the one place the classical fallbacks plug in.
     """
     if kind == "oracle":
         return SidecarOracle(sidecar_path(part_path), transform)
@@ -272,7 +272,11 @@ def make_source(kind: str, part_path: str | os.PathLike, transform):
         except ImportError as exc:
             raise PolycubeError(f"the classical polycube construction is not available ({exc})") from exc
         return ClassicalSource()
-    raise ValueError(f"unknown per-part polycube source {kind!r}; expected 'oracle' or 'classical'")
+    if kind == "voxel":
+        from .voxel import VoxelSource
+
+        return VoxelSource()
+    raise ValueError(f"unknown per-part polycube source {kind!r}; expected 'oracle', 'classical' or 'voxel'")
 
 
 def source_extra(kind: str, part_path: str | os.PathLike, checkpoint: str | os.PathLike | None = None) -> dict:
@@ -287,6 +291,11 @@ def source_extra(kind: str, part_path: str | os.PathLike, checkpoint: str | os.P
         from .classical import VERSION, ClassicalConfig
 
         return {"classical": ClassicalConfig(), "version": VERSION}
+    if kind == "voxel":
+        from .voxel import VERSION as VOXEL_VERSION
+        from .voxel import VoxelConfig
+
+        return {"voxel": VoxelConfig(), "version": VOXEL_VERSION}
     return {}
 
 
@@ -420,6 +429,14 @@ def partition_pullback(extracted: str | os.PathLike, corr: str | os.PathLike, lo
         return _pull_back_classical(mesh_pc, _surface_map(arrays), part.vertices, part.faces, config).save(dest)
     c = Correspondence.load(corr)
     return pull_back(mesh_pc, c.map_points, part.vertices, part.faces, config.pullback).save(dest)
+
+
+def pullback_quality(path: str | os.PathLike) -> dict:
+    """``valid`` and ``sj_min`` of a :func:`partition_pullback` file (what decides whether the
+    flow tries the next polycube source), read from its metadata."""
+    m = HexMesh.load(path).meta
+    sj = m.get("sj_min")
+    return {"valid": bool(m.get("valid")), "sj_min": None if sj is None else float(sj)}
 
 
 def report_export(hexc: str | os.PathLike, extracted: str | os.PathLike, loaded: str | os.PathLike,
@@ -631,6 +648,6 @@ __all__ = [
     "stage_params", "chain_keys", "stage_path", "sweep_partials", "sidecar_path", "polycube_to_frame",
     "SidecarOracle", "classical_available", "make_source", "source_extra", "load_sample", "read_loaded",
     "polycube_cloud", "write_generated", "cleanup_extract", "read_extracted", "register", "partition_pullback",
-    "report_export", "write_synthetic_parts", "read_manifest", "merge_rows", "write_manifest", "summary_rows",
+    "pullback_quality", "report_export", "write_synthetic_parts", "read_manifest", "merge_rows", "write_manifest", "summary_rows",
     "format_table", "load_json", "write_report_html", "thumbnail_data_uri",
 ]

@@ -479,6 +479,11 @@ def test_learned_batches_then_classical_fallback(prefect_harness, part_lib, tiny
                 return cloud
 
             return classical
+        if kind == "voxel":  # the last resort gives up here: the row must say why each source was left
+            def voxel(sample, V, F, config):
+                raise PolycubeError("no voxel polycube in this test")
+
+            return voxel
         return real_make_source(kind, part_path, transform)
 
     monkeypatch.setattr(library, "classical_available", lambda: True)
@@ -493,8 +498,9 @@ def test_learned_batches_then_classical_fallback(prefect_harness, part_lib, tiny
     good, wrong = rows[f"synth-{GOOD[0]}"], rows["wrong_genus"]
     assert good["status"] == "meshed" and good["provenance"] == "classical"
     assert good["fallback"].startswith("learned polycube rejected")
-    assert wrong["status"] == "failed" and wrong["stage"] == "extract" and "genus" in wrong["error"]
+    assert wrong["status"] == "failed" and wrong["stage"] == "polycube" and "no voxel polycube" in wrong["error"]
     assert wrong["fallback"].startswith("learned polycube rejected")
+    assert "classical polycube rejected at extract" in wrong["fallback"] and "genus" in wrong["fallback"]
     work = out / ".work"
     learned = [library.PolycubeCloud.load(p) for p in work.rglob("polycube-*.npz")
                if library.PolycubeCloud.load(p).meta.get("provenance") == "learned"]
@@ -506,3 +512,73 @@ def test_learned_batches_then_classical_fallback(prefect_harness, part_lib, tiny
     with get_client(sync_client=True) as client:
         runs = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[_flow_run_of(res)])))
     assert sum(tr.name.startswith("generate-") for tr in runs) == 2
+
+
+def _fake_sources(monkeypatch):
+    """``classical``: the part's sidecar relabelled (fast); ``voxel``: gives up."""
+    real_make_source = library.make_source
+
+    def fake_make_source(kind, part_path, transform):
+        if kind == "classical":
+            src = library.SidecarOracle(library.sidecar_path(part_path), transform)
+
+            def classical(sample, V, F, config):
+                cloud = src(sample, V, F, config)
+                cloud.meta["provenance"] = "classical"
+                return cloud
+
+            return classical
+        if kind == "voxel":
+            def voxel(sample, V, F, config):
+                raise PolycubeError("no voxel polycube in this test")
+
+            return voxel
+        return real_make_source(kind, part_path, transform)
+
+    monkeypatch.setattr(library, "classical_available", lambda: True)
+    monkeypatch.setattr(library, "make_source", fake_make_source)
+
+
+def _scripted_quality(monkeypatch, script):
+    """The flow's view of each pulled-back mesh, in order (a real mesh is valid here; these force
+    the invalid-mesh path)."""
+    seen = []
+
+    def quality(path):
+        seen.append(path)
+        return script[len(seen) - 1]
+
+    monkeypatch.setattr(library, "pullback_quality", quality)
+    return seen
+
+
+def test_invalid_mesh_falls_back_to_the_next_source(prefect_harness, part_lib, tmp_path, monkeypatch):
+    """A source whose pulled-back mesh is not valid is left for the next; the next one's valid mesh is
+    exported and the row says why the first was left."""
+    _fake_sources(monkeypatch)
+    seen = _scripted_quality(monkeypatch, [{"valid": False, "sj_min": -0.3}, {"valid": True, "sj_min": 0.2}])
+    state, res = _mesh([part_lib / f"synth-{GOOD[0]}.stl"], tmp_path / "out", fallback=True)
+    assert state.is_completed() and len(seen) == 2 and seen[0] != seen[1]
+    row = res["rows"][0]
+    assert row["status"] == "meshed" and row["provenance"] == "classical"
+    assert row["fallback"] == ("pullback: the oracle polycube's hex mesh is not valid "
+                               "(minimum scaled Jacobian -0.300)")
+    assert row["timings"]["rejected_pullback"] > 0 and row["timings"]["pullback"] > 0
+    assert row["keys"]["pullback"] in seen[1]
+
+
+def test_when_every_source_fails_the_best_invalid_mesh_is_exported(prefect_harness, part_lib, tmp_path, monkeypatch):
+    """oracle: not valid (-0.1); classical: worse (-0.4); voxel: rejected -> the oracle mesh is exported,
+    marked by every reason."""
+    _fake_sources(monkeypatch)
+    seen = _scripted_quality(monkeypatch, [{"valid": False, "sj_min": -0.1}, {"valid": False, "sj_min": -0.4}])
+    state, res = _mesh([part_lib / f"synth-{GOOD[0]}.stl"], tmp_path / "out", fallback=True)
+    assert state.is_completed() and len(seen) == 2
+    row = res["rows"][0]
+    assert row["status"] == "meshed" and row["provenance"] == "oracle"
+    assert row["keys"]["pullback"] in seen[0]
+    reasons = row["fallback"].split("; ")
+    assert reasons[0].startswith("pullback: the oracle polycube's hex mesh is not valid (minimum scaled Jacobian -0.100)")
+    assert reasons[1].startswith("pullback: the classical polycube's hex mesh is not valid (minimum scaled Jacobian -0.400)")
+    assert reasons[2].startswith("voxel polycube rejected at polycube: no voxel polycube in this test")
+    assert (tmp_path / "out" / f"synth-{GOOD[0]}" / "hex.vtu").is_file()
