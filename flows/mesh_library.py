@@ -33,7 +33,7 @@ from prefect_dask import DaskTaskRunner
 
 from polycubenet import library
 from polycubenet.errors import PartError, PolycubeError
-from polycubenet.pipeline import PipelineConfig, invalid_mesh_reason, mesh_rank
+from polycubenet.pipeline import PipelineConfig
 from tasks import mesh as T
 from tasks.common import results_dir
 
@@ -54,8 +54,8 @@ class _Part:
     stage: str = "load_sample"
     error: str | None = None
     fallback: str | None = None
-    #: pulled-back meshes of earlier sources that were not valid: ``{source, keys, records, quality}``
-    candidates: list = dataclasses.field(default_factory=list)
+    #: cache keys of every source's chain (``chain_keys[source][stage]``)
+    chain_keys: dict = dataclasses.field(default_factory=dict)
     #: seconds spent on the polycube sources that were left (per stage)
     rejected_seconds: dict = dataclasses.field(default_factory=dict)
 
@@ -154,10 +154,15 @@ def mesh_library(
     sources = source_chain(polycube, fallback)
     parts: list[_Part] = []
     for p, h, n in zip(paths, hashes, names):
-        params = library.stage_params(config, polycube=polycube,
-                                      polycube_extra=library.source_extra(polycube, p, checkpoint),
-                                      load_kw=load_kw, formats=formats, out_dir=str(out_p / n))
-        parts.append(_Part(p, n, h, library.chain_keys(h, params), list(sources)))
+        keys = {}
+        for src in sources:
+            params = library.stage_params(config, polycube=src,
+                                          polycube_extra=library.source_extra(src, p, checkpoint),
+                                          load_kw=load_kw, formats=formats, out_dir=str(out_p / n))
+            keys[src] = library.chain_keys(h, params)
+        part = _Part(p, n, h, keys[sources[0]], list(sources))
+        part.chain_keys = keys
+        parts.append(part)
     logger.info(f"{len(parts)} parts under {list(inputs)}; polycube source {' -> '.join(sources)}; out {out_p}")
 
     ctx = FlowRunContext.get()
@@ -167,52 +172,53 @@ def mesh_library(
     run_id = str(ctx.flow_run.id) if ctx and ctx.flow_run else None
     result_storage = results_dir(work_p)
     result_storage.mkdir(parents=True, exist_ok=True)
-    tasks = {name: getattr(T, name).with_options(result_storage=result_storage) for name in
-             ("load_sample", "polycube_cloud", "cleanup_extract", "register", "partition_pullback", "report_export")}
+    load_task = T.load_sample.with_options(result_storage=result_storage)
     done_q: "queue.Queue" = queue.Queue()
     pending: dict = {}
     progress = _Progress(len(parts), artifacts)
     gen_pool: list[_Part] = []
     loads_left = len(parts)
 
-    def path_of(part: _Part, stage: str) -> str:
-        return str(library.stage_path(work_p, part.hash, stage, part.keys[stage]))
+    def path_of(part: _Part, stage: str, source: str | None = None) -> str:
+        return str(library.stage_path(work_p, part.hash, stage, part.chain_keys[source or part.source][stage]))
 
-    def submit(part: _Part, stage: str, task, **kw):
-        """Submit a stage; a stale cache record (its file gone) is refreshed, not trusted."""
-        if stage == "export":
-            fresh = library.load_json(Path(kw["out_dir"]) / "result.json").get("key") == part.keys[stage]
-        else:
-            fresh = Path(kw["dest"]).exists()
-        if not fresh:
-            task = task.with_options(refresh_cache=True)
-        part.stage = stage
+    def submit(part, what: str, task, priority: int, **kw):
         if on_dask:  # the most advanced part first: parts finish one after another, not all at the end
             import dask
 
-            with dask.annotate(priority=library.STAGES.index(stage)):
-                fut = task.submit(key=part.keys[stage], name=part.name, **kw)
+            with dask.annotate(priority=priority):
+                fut = task.submit(**kw)
         else:
-            fut = task.submit(key=part.keys[stage], name=part.name, **kw)
-        pending[fut] = (part, stage)
+            fut = task.submit(**kw)
+        pending[fut] = (part, what)
         fut.add_done_callback(done_q.put)
 
+    def submit_load(part: _Part):
+        dest = path_of(part, "load_sample")
+        task = load_task if Path(dest).exists() else load_task.with_options(refresh_cache=True)
+        submit(part, "load_sample", task, 0, path=str(part.path), dest=dest, key=part.keys["load_sample"],
+               name=part.name, load_kw=load_kw, config=config)
+
+    def submit_chain(part: _Part, learned: dict | None = None):
+        """The rest of the part (every source's chain, then export) as one task that calls the stage tasks."""
+        part.stage = "polycube"
+        srcs = part.sources
+        submit(part, "chain", T.mesh_chain, 1, name=part.name, path=str(part.path),
+               loaded=part.records["load_sample"]["path"], sources=list(srcs),
+               keys={s: part.chain_keys[s] for s in srcs},
+               paths={s: {st: path_of(part, st, s) for st in library.STAGES[1:5]} for s in srcs},
+               config=config, formats=formats, out_dir=str(out_p / part.name),
+               result_storage=str(result_storage), learned=learned)
+
     def start_polycube(part: _Part):
-        loaded = part.records["load_sample"]["path"]
         if part.source == "learned":
             if Path(path_of(part, "polycube")).exists():
-                part.records["polycube"] = {"stage": "polycube", "path": path_of(part, "polycube"), "seconds": 0.0,
-                                            "flow_run": "earlier", "finished": time.time()}
-                start_extract(part)
+                submit_chain(part, {"record": {"stage": "polycube", "path": path_of(part, "polycube"), "seconds": 0.0,
+                                               "flow_run": "earlier", "finished": time.time()}})
             else:
                 gen_pool.append(part)
         else:
-            submit(part, "polycube", tasks["polycube_cloud"], kind=part.source, path=str(part.path), loaded=loaded,
-                   dest=path_of(part, "polycube"), config=config)
-
-    def start_extract(part: _Part):
-        submit(part, "extract", tasks["cleanup_extract"], cloud=part.records["polycube"]["path"],
-               loaded=part.records["load_sample"]["path"], dest=path_of(part, "extract"), config=config)
+            submit_chain(part)
 
     def flush_generation(final: bool):
         nonlocal gen_pool
@@ -258,114 +264,55 @@ def mesh_library(
             hook({"part": part.name, "status": status, "stage": part.stage, "error": error,
                   "done": progress.done, "failed": progress.failed, "total": progress.total})
 
-    def next_source(part: _Part, reason: str):
-        """Leave the part's current polycube source for the next one (its stages have their own keys)."""
-        logger.warning(f"{part.name}: {reason}; trying the {part.sources[1]} polycube")
-        part.fallback = f"{part.fallback}; {reason}" if part.fallback else reason
-        for s in ("polycube", "extract", "register", "pullback"):
-            rec = part.records.pop(s, None)
-            if rec is not None:
-                part.rejected_seconds[s] = part.rejected_seconds.get(s, 0.0) + float(rec.get("seconds") or 0.0)
-        part.sources = part.sources[1:]
-        params = library.stage_params(config, polycube=part.source,
-                                      polycube_extra=library.source_extra(part.source, part.path, checkpoint),
-                                      load_kw=load_kw, formats=formats, out_dir=str(out_p / part.name))
-        part.keys = library.chain_keys(part.hash, params)
-        start_polycube(part)
-
-    def export(part: _Part, quality: dict | None = None):
-        """Export the part's current pulled-back mesh, or the best earlier one when that is better
-        (``pipeline.mesh_rank``: a valid mesh first, then the higher minimum scaled Jacobian)."""
-        current = None
-        if quality is not None:
-            current = {"source": part.source, "keys": dict(part.keys), "records": dict(part.records), "quality": quality}
-        options = part.candidates + ([current] if current else [])
-        best = max(options, key=lambda c: mesh_rank(c["quality"]))
-        if best is not current:
-            if current is not None:
-                part.fallback += f"; pullback: {invalid_mesh_reason(current['source'], quality)}"
-            part.fallback += (f"; no polycube gave a valid mesh: kept the {best['source']} one's "
-                              "(the highest minimum scaled Jacobian)")
-            if current is not None:
-                for s in ("polycube", "extract", "register", "pullback"):
-                    rec = part.records.get(s)
-                    if rec is not None:
-                        part.rejected_seconds[s] = part.rejected_seconds.get(s, 0.0) + float(rec.get("seconds") or 0.0)
-            for s, rec in best["records"].items():  # counted as rejected when it was left; kept now
-                if s in part.rejected_seconds:
-                    part.rejected_seconds[s] = max(0.0, part.rejected_seconds[s] - float(rec.get("seconds") or 0.0))
-            part.keys, part.records = best["keys"], {**part.records, **best["records"]}
-            part.sources = [best["source"]]
-        submit(part, "export", tasks["report_export"], hexc=part.records["pullback"]["path"],
-               extracted=part.records["extract"]["path"], loaded=part.records["load_sample"]["path"],
-               out_dir=str(out_p / part.name), formats=formats)
-
-    def fail_or_fall_back(part: _Part, stage: str, exc: BaseException):
+    def unexpected(part: _Part, stage: str, exc: BaseException):
         msg = f"{type(exc).__name__}: {exc}"
-        if isinstance(exc, PolycubeError) and stage in ("polycube", "extract"):
-            if len(part.sources) > 1:
-                next_source(part, f"{part.source} polycube rejected at {stage}: {exc}")
-                return
-            if part.candidates:  # an earlier source's mesh (not valid) is still better than none
-                reason = f"{part.source} polycube rejected at {stage}: {exc}"
-                part.fallback = f"{part.fallback}; {reason}" if part.fallback else reason
-                for s in ("polycube", "extract"):
-                    rec = part.records.pop(s, None)
-                    if rec is not None:
-                        part.rejected_seconds[s] = part.rejected_seconds.get(s, 0.0) + float(rec.get("seconds") or 0.0)
-                export(part)
-                return
         if not isinstance(exc, (PartError, PolycubeError)):
             logger.error(f"{part.name}: unexpected failure at {stage}: {msg}")
+        part.stage = stage
         finish(part, "failed", msg)
 
     for part in parts:
-        submit(part, "load_sample", tasks["load_sample"], path=str(part.path), dest=path_of(part, "load_sample"),
-               load_kw=load_kw, config=config)
+        submit_load(part)
 
     while pending:
         fut = done_q.get()
         if fut not in pending:
             continue
-        who, stage = pending.pop(fut)
+        who, what = pending.pop(fut)
         value = fut.result(raise_on_failure=False)
-        if stage == "generate":
+        if what == "generate":
             for m in who:
                 if isinstance(value, BaseException):
-                    fail_or_fall_back(m, "polycube", value)
+                    if isinstance(value, PolycubeError) and len(m.sources) > 1:
+                        submit_chain(m, {"error": str(value)})
+                    else:
+                        unexpected(m, "polycube", value)
                 else:
-                    m.records["polycube"] = next(r for r in value if Path(r["path"]) == Path(path_of(m, "polycube")))
-                    start_extract(m)
-            continue
-        part = who
-        if stage == "load_sample":
+                    rec = next(r for r in value if Path(r["path"]) == Path(path_of(m, "polycube")))
+                    submit_chain(m, {"record": rec})
+        elif what == "load_sample":
+            part = who
             loads_left -= 1
-        if isinstance(value, BaseException):
-            fail_or_fall_back(part, stage, value)
-        else:
-            part.records[stage] = value
-            loaded, extracted = part.records["load_sample"]["path"], part.records.get("extract", {}).get("path")
-            if stage == "load_sample":
+            if isinstance(value, BaseException):
+                unexpected(part, "load_sample", value)
+            else:
+                part.records["load_sample"] = value
                 start_polycube(part)
-            elif stage == "polycube":
-                start_extract(part)
-            elif stage == "extract":
-                submit(part, "register", tasks["register"], extracted=extracted, loaded=loaded,
-                       dest=path_of(part, "register"), config=config)
-            elif stage == "register":
-                submit(part, "pullback", tasks["partition_pullback"], extracted=extracted,
-                       corr=value["path"], loaded=loaded, dest=path_of(part, "pullback"), config=config)
-            elif stage == "pullback":
-                quality = library.pullback_quality(value["path"])
-                if not quality["valid"] and len(part.sources) > 1:
-                    part.candidates.append({"source": part.source, "keys": dict(part.keys),
-                                            "records": dict(part.records), "quality": quality})
-                    next_source(part, f"pullback: {invalid_mesh_reason(part.source, quality)}")
-                else:
-                    export(part, quality)
-            elif stage == "export":
-                finish(part, "meshed")
-        if polycube == "learned" or any(p.source == "learned" for p in gen_pool):
+        else:  # the part's chain
+            part = who
+            if isinstance(value, BaseException):
+                unexpected(part, getattr(value, "stage", "polycube"), value)
+            else:
+                part.records.update(value["records"])
+                part.sources = [value["source"]]
+                part.keys = value["keys"]
+                part.fallback = value["fallback"]
+                part.rejected_seconds = value["rejected_seconds"]
+                if value["fallback"]:
+                    logger.warning(f"{part.name}: {value['fallback']}")
+                part.stage = value["stage"]
+                finish(part, value["status"], value["error"])
+        if any(p.source == "learned" for p in gen_pool):
             flush_generation(final=loads_left == 0)
 
     rows = [rows_by_name.get(p.name) or _row(p, out_p, run_id) for p in parts]
