@@ -160,6 +160,25 @@ def test_classical_cloud_key_follows_the_construction_version(monkeypatch, tmp_p
     assert after["load_sample"] == before["load_sample"] and after["polycube"] != before["polycube"]
 
 
+def test_voxel_source_by_name_and_its_key(monkeypatch, tmp_path):
+    from polycubenet import voxel
+    from flows.mesh_library import source_chain
+
+    assert isinstance(library.make_source("voxel", tmp_path / "p.stl", None), voxel.VoxelSource)
+
+    def key():
+        params = library.stage_params(PipelineConfig(**SMALL), polycube="voxel",
+                                      polycube_extra=library.source_extra("voxel", tmp_path / "p.stl"))
+        return library.chain_keys("h" * 64, params)
+
+    before = key()
+    monkeypatch.setattr(voxel, "VERSION", voxel.VERSION + "-next")
+    assert key()["polycube"] != before["polycube"]
+    assert source_chain("classical", False) == ["classical", "voxel"]
+    assert source_chain("learned", True) == ["learned", "classical", "voxel"]
+    assert source_chain("oracle", False) == ["oracle"] and source_chain("voxel", True) == ["voxel"]
+
+
 def test_polycube_to_frame_follows_a_signed_permutation():
     rng = np.random.default_rng(0)
     occ = rng.random((2, 3, 4)) > 0.3
