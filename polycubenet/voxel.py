@@ -249,39 +249,35 @@ def repair_occupancy(occ: np.ndarray, frac: np.ndarray, rounds: int = 200) -> tu
     """
     occ = occ.copy()
     added = removed = 0
+
+    def add_best(cells) -> bool:
+        """Add the empty in-grid cell of ``cells`` with the largest inside fraction; whether one was."""
+        inside = [c for c in cells if min(c) >= 0 and all(c[a] < occ.shape[a] for a in range(3)) and not occ[c]]
+        if not inside:
+            return False
+        occ[max(inside, key=lambda c: frac[c])] = True
+        return True
+
     for _ in range(rounds):
         changed = False
         e = edge_contacts(occ)
         if len(e):
             for ax, i, j, k in e:
                 b, c = (ax + 1) % 3, (ax + 2) % 3
-                best, bf = None, -1.0
+                cells = []
                 for db in (-1, 0):
                     for dc in (-1, 0):
                         cell = [0, 0, 0]
                         cell[ax], cell[b], cell[c] = (i, j, k)[ax], (i, j, k)[b] + db, (i, j, k)[c] + dc
-                        cell = tuple(cell)
-                        if min(cell) < 0 or any(cell[a] >= occ.shape[a] for a in range(3)):
-                            continue
-                        if not occ[cell] and frac[cell] > bf:
-                            best, bf = cell, frac[cell]
-                if best is not None and not occ[best]:
-                    occ[best] = True
+                        cells.append(tuple(cell))
+                if add_best(cells):
                     added += 1
                     changed = True
             continue
         v = nonmanifold_vertices(occ)
         if len(v):
             for i, j, k in v:
-                best, bf = None, -1.0
-                for d in np.ndindex(2, 2, 2):
-                    cell = (i - 1 + d[0], j - 1 + d[1], k - 1 + d[2])
-                    if min(cell) < 0 or any(cell[a] >= occ.shape[a] for a in range(3)):
-                        continue
-                    if not occ[cell] and frac[cell] > bf:
-                        best, bf = cell, frac[cell]
-                if best is not None and not occ[best]:
-                    occ[best] = True
+                if add_best([(i - 1 + d[0], j - 1 + d[1], k - 1 + d[2]) for d in np.ndindex(2, 2, 2)]):
                     added += 1
                     changed = True
             continue

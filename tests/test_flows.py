@@ -485,28 +485,9 @@ def test_learned_batches_then_classical_fallback(prefect_harness, part_lib, tiny
     """Generation runs as batched tasks (packed under the point budget) writing one learned cloud per
     part; a rejected learned polycube goes to the classical source with its own cache keys, and the
     row says so.  The classical construction itself is slow here, so its place is taken by the
-    part's sidecar (provenance "classical"): this tests the wiring, not the construction."""
-    real_make_source = library.make_source
-
-    def fake_make_source(kind, part_path, transform):
-        if kind == "classical":
-            src = library.SidecarOracle(library.sidecar_path(part_path), transform)
-
-            def classical(sample, V, F, config):
-                cloud = src(sample, V, F, config)
-                cloud.meta["provenance"] = "classical"
-                return cloud
-
-            return classical
-        if kind == "voxel":  # the last resort gives up here: the row must say why each source was left
-            def voxel(sample, V, F, config):
-                raise PolycubeError("no voxel polycube in this test")
-
-            return voxel
-        return real_make_source(kind, part_path, transform)
-
-    monkeypatch.setattr(library, "classical_available", lambda: True)
-    monkeypatch.setattr(library, "make_source", fake_make_source)
+    part's sidecar (provenance "classical"), and the voxel one gives up (:func:`_fake_sources`): this tests
+    the wiring, not the constructions."""
+    _fake_sources(monkeypatch)
     out = tmp_path / "out"
     budget = SMALL["n_sample"] + SMALL["n_polycube"]  # one part per generation batch
     # "auto" is learned with the classical fallback, whatever ``fallback`` says
