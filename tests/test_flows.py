@@ -145,18 +145,20 @@ def test_keys_change_only_downstream_of_a_changed_parameter():
     assert fallback["load_sample"] == base["load_sample"] and fallback["polycube"] != base["polycube"]
 
 
+def _source_keys(kind: str, part: Path) -> dict:
+    """Every stage key of a part (fixed content hash) whose polycube comes from source ``kind``."""
+    params = library.stage_params(PipelineConfig(**SMALL), polycube=kind,
+                                  polycube_extra=library.source_extra(kind, part))
+    return library.chain_keys("h" * 64, params)
+
+
 def test_classical_cloud_key_follows_the_construction_version(monkeypatch, tmp_path):
     """A cached classical cloud made by older code (or other settings) must not be reused."""
     from polycubenet import classical
 
-    def key():
-        params = library.stage_params(PipelineConfig(**SMALL), polycube="classical",
-                                      polycube_extra=library.source_extra("classical", tmp_path / "p.stl"))
-        return library.chain_keys("h" * 64, params)
-
-    before = key()
+    before = _source_keys("classical", tmp_path / "p.stl")
     monkeypatch.setattr(classical, "VERSION", classical.VERSION + "-next")
-    after = key()
+    after = _source_keys("classical", tmp_path / "p.stl")
     assert after["load_sample"] == before["load_sample"] and after["polycube"] != before["polycube"]
 
 
@@ -166,14 +168,9 @@ def test_voxel_source_by_name_and_its_key(monkeypatch, tmp_path):
 
     assert isinstance(library.make_source("voxel", tmp_path / "p.stl", None), voxel.VoxelSource)
 
-    def key():
-        params = library.stage_params(PipelineConfig(**SMALL), polycube="voxel",
-                                      polycube_extra=library.source_extra("voxel", tmp_path / "p.stl"))
-        return library.chain_keys("h" * 64, params)
-
-    before = key()
+    before = _source_keys("voxel", tmp_path / "p.stl")
     monkeypatch.setattr(voxel, "VERSION", voxel.VERSION + "-next")
-    assert key()["polycube"] != before["polycube"]
+    assert _source_keys("voxel", tmp_path / "p.stl")["polycube"] != before["polycube"]
     assert source_chain("classical", False) == ["classical", "voxel"]
     assert source_chain("learned", True) == ["learned", "classical", "voxel"]
     assert source_chain("oracle", False) == ["oracle"] and source_chain("voxel", True) == ["voxel"]
