@@ -161,7 +161,8 @@ def mesh_library(
         keys = {}
         for src in sources:
             params = library.stage_params(config, polycube=src,
-                                          polycube_extra=library.source_extra(src, p, checkpoint),
+                                          polycube_extra=library.source_extra(src, p, checkpoint, steps=steps,
+                                                                                device=device),
                                           load_kw=load_kw, formats=formats, out_dir=str(out_p / n))
             keys[src] = library.chain_keys(h, params)
         part = _Part(p, n, h, keys[sources[0]], list(sources))

@@ -8,8 +8,9 @@
   budget runs alone, its point side processed in chunks (memory linear in points).
 * :func:`generate` runs DDIM for a list of conditions and returns ``(N_out, 6)`` clouds
   (xyz + unit normals, the conditions' canonical frame).  Every request draws its noise
-  from its own generator seeded by ``(seed, request index)``, so the output of a
-  request does not depend on which batch it landed in.
+  from its own generator seeded by ``(seed, the request's own condition points)``
+  (:func:`request_seed`), so the output of a request depends on nothing else: not on its
+  position in the list, nor on the batch it landed in.
 * :class:`ModelSource` plugs the model into :func:`polycubenet.pipeline.mesh_part`.
 """
 
@@ -55,6 +56,26 @@ def load_model(checkpoint: str | Path | Loaded | None = None, device: str | None
         _CACHE.clear()
         _CACHE[key] = load_checkpoint(path, device=device)
     return _CACHE[key]
+
+
+def resolve_steps(steps: int | None, device: str | None) -> tuple[str, int | str]:
+    """``(device type, DDIM steps)`` that :func:`generate` will use for these arguments."""
+    dev_type = torch.device(device or default_device()).type
+    if steps is not None:
+        return dev_type, int(steps)
+    return dev_type, DEFAULT_STEPS_CPU if dev_type == "cpu" else "stride4"
+
+
+def request_seed(seed: int, condition: np.ndarray) -> int:
+    """The noise seed of one request: a hash of ``seed`` and the condition's float32 bytes (63 bits)."""
+    import hashlib
+
+    h = hashlib.blake2b(digest_size=8)
+    h.update(int(seed).to_bytes(8, "little", signed=True))
+    c = np.ascontiguousarray(condition, dtype=np.float32)
+    h.update(np.asarray(c.shape, np.int64).tobytes())
+    h.update(c.tobytes())
+    return int.from_bytes(h.digest(), "little") >> 1
 
 
 def plan_batches(n_in: Sequence[int], n_out: Sequence[int], point_budget: int = DEFAULT_POINT_BUDGET) -> list[list[int]]:
@@ -114,7 +135,7 @@ def generate(
     steps : DDIM steps (default: stride 4 on CUDA, :data:`DEFAULT_STEPS_CPU` on a CPU)
     stride : DDIM stride when ``steps`` is None on CUDA
     eta : 0 = deterministic DDIM, 1 = DDPM-like ancestral noise
-    seed : request ``i`` uses generator seed ``seed * 1_000_003 + i``
+    seed : request ``i`` uses generator seed ``request_seed(seed, conditions[i])``
     point_budget : points (condition + output) per batch
     progress : called with ``(batches done, batches)``
 
@@ -140,7 +161,7 @@ def generate(
     batches = plan_batches([len(c) for c in conds], outs, point_budget or DEFAULT_POINT_BUDGET)
     results: list[np.ndarray | None] = [None] * len(conds)
     for b, idx in enumerate(batches):
-        clouds = _sample_batch(loaded, [conds[i] for i in idx], outs[idx[0]], [seed * 1_000_003 + i for i in idx],
+        clouds = _sample_batch(loaded, [conds[i] for i in idx], outs[idx[0]], [request_seed(seed, conds[i]) for i in idx],
                                steps=steps, stride=stride, eta=eta, device=device, chunk=chunk, progress=None)
         for i, cloud in zip(idx, clouds):
             results[i] = cloud

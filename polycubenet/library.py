@@ -279,13 +279,23 @@ def make_source(kind: str, part_path: str | os.PathLike, transform):
     raise ValueError(f"unknown per-part polycube source {kind!r}; expected 'oracle', 'classical' or 'voxel'")
 
 
-def source_extra(kind: str, part_path: str | os.PathLike, checkpoint: str | os.PathLike | None = None) -> dict:
-    """What, besides the part, a polycube source's output depends on (for its cache key)."""
+def source_extra(kind: str, part_path: str | os.PathLike, checkpoint: str | os.PathLike | None = None, *,
+                 steps: int | None = None, device: str | None = None) -> dict:
+    """What, besides the part, a polycube source's output depends on (for its cache key).
+
+    For the model: the checkpoint's content, the DDIM steps actually used and the device
+    type (``steps=None`` means a device-dependent default, resolved here).  The batch and
+    the point budget are not in it: a request's cloud does not depend on them
+    (:func:`polycubenet.inference.generate`)."""
     if kind == "oracle":
         sc = sidecar_path(part_path)
         return {"sidecar": file_hash(sc) if sc.is_file() else None}
     if kind == "learned":
-        return {"checkpoint": file_hash(checkpoint) if checkpoint and Path(checkpoint).is_file() else str(checkpoint)}
+        from .inference import resolve_steps
+
+        dev_type, used = resolve_steps(steps, device)
+        return {"checkpoint": file_hash(checkpoint) if checkpoint and Path(checkpoint).is_file() else str(checkpoint),
+                "steps": used, "device": dev_type}
     if kind == "classical" and classical_available():
         # the construction's settings and version: a cached classical cloud made by older code is not reused
         from .classical import VERSION, ClassicalConfig
@@ -456,12 +466,10 @@ def report_export(hexc: str | os.PathLike, extracted: str | os.PathLike, loaded:
                      polycube=poly, cloud=PolycubeCloud(np.zeros((0, 3)), np.zeros((0, 3)), meta=cloud_meta),
                      report=quality_report(mesh, surface=(Vo, part.faces)))
     out = Path(out_dir)
-    # result.json is written last by PartResult.write: its presence marks a complete output
+    # result.json is written last, once, with the stage key in it (PartResult.write): its presence
+    # with this key marks a complete output; a kill before it leaves the stage to be redone
     (out / "result.json").unlink(missing_ok=True)
-    res.write(out, formats=tuple(formats))
-    row = json.loads((out / "result.json").read_text())
-    row["key"] = key
-    write_json(out / "result.json", row)
+    res.write(out, formats=tuple(formats), extra={"key": key})
     return out
 
 

@@ -204,8 +204,11 @@ class PartResult:
             "hausdorff": (q.get("surface") or {}).get("hausdorff"),
         }
 
-    def write(self, out_dir: str | Path, formats: tuple[str, ...] = ("vtu",)) -> Path:
-        """Write the mesh in ``formats``, ``polycube.npz``, ``quality.*`` and ``result.json`` under ``out_dir``."""
+    def write(self, out_dir: str | Path, formats: tuple[str, ...] = ("vtu",), extra: dict | None = None) -> Path:
+        """Write the mesh in ``formats``, ``polycube.npz``, ``quality.*`` and ``result.json`` under ``out_dir``.
+
+        ``result.json`` is written last and once (``extra`` merged into its row), so its presence
+        with a given content marks an output that is complete with that content."""
         from .io import write_hex
 
         out = Path(out_dir)
@@ -221,7 +224,7 @@ class PartResult:
         if self.report is not None:
             self.report.write(out)
             _add_provenance(out / "quality.json", self.row())
-        write_json(out / "result.json", self.row())
+        write_json(out / "result.json", {**self.row(), **(extra or {})})
         return out
 
 

@@ -62,12 +62,19 @@ class TrainConfig:
     ckpt_every: int = 200
     log_every: int = 20
     threads: int = 0  # torch CPU threads (0: leave torch's default)
+    # the diffusion recipe (defaults: the paper's -- eps prediction, cosine schedule, random pairing)
+    prediction: str = "eps"  # eps | v
+    schedule: str = "cosine"  # cosine | cosine_ztsnr | linear
+    min_snr: float = 0.0  # Min-SNR-gamma loss weighting (0: off)
+    pairing: str = "random"  # random | ot (noise matched to the target points by assignment)
+    max_genus: int = -1  # curriculum: train only on pairs of genus <= this (-1: all)
+    reload_every: int = 0  # re-read the shard folder every this many steps (0: never), for shards still being written
 
 
 class PairData:
     """All pairs of a shard folder in memory (float32), with per-draw subsampling."""
 
-    def __init__(self, directory: str | Path, limit: int | None = None):
+    def __init__(self, directory: str | Path, limit: int | None = None, max_genus: int = -1):
         shards = list_shards(directory)
         if not shards:
             raise FileNotFoundError(f"no shard-*.npz in {directory} (make them with python -m polycubenet.synth)")
@@ -88,7 +95,14 @@ class PairData:
         self.target_normals = np.concatenate(tn)[:limit]
         self.genus = np.concatenate(genus)[:limit]
         self.seeds = np.concatenate(seeds)[:limit]
+        if max_genus >= 0:
+            keep = self.genus <= max_genus
+            if not keep.any():
+                raise ValueError(f"no pair of genus <= {max_genus} in {directory}")
+            for name in ("cond", "target_points", "target_normals", "genus", "seeds"):
+                setattr(self, name, getattr(self, name)[keep])
         self.directory = Path(directory)
+        self.shards = len(shards)
 
     def __len__(self) -> int:
         return len(self.cond)
@@ -132,26 +146,43 @@ def ema_update(ema: torch.nn.Module, model: torch.nn.Module, decay: float) -> No
 
 @torch.no_grad()
 def heldout_loss(model, diffusion: Diffusion, x0: torch.Tensor, cond: torch.Tensor, seed: int = 0) -> float:
-    """Mean L2 noise-prediction error at fixed timesteps and noise (comparable across steps)."""
+    """Mean L2 error of the recipe's prediction target (noise, or v) at fixed timesteps and noise
+    (comparable across the steps of one run, not across recipes: compare those with evaluate)."""
     g = torch.Generator(device=x0.device).manual_seed(seed)
     B = x0.shape[0]
     t = torch.linspace(0, diffusion.T - 1, B, device=x0.device).long()
     noise = torch.randn(x0.shape, generator=g, device=x0.device)
-    eps = model(diffusion.q_sample(x0, t, noise), t, cond)
-    return float((eps.float() - noise).pow(2).mean())
+    out = model(diffusion.q_sample(x0, t, noise), t, cond)
+    target = noise
+    if diffusion.prediction == "v":
+        ab = diffusion._ab(t, x0)
+        target = ab.sqrt() * noise - (1 - ab).sqrt() * x0
+    return float((out.float() - target).pow(2).mean())
 
 
 def _dist_env() -> tuple[int, int, int]:
     return int(os.environ.get("RANK", 0)), int(os.environ.get("WORLD_SIZE", 1)), int(os.environ.get("LOCAL_RANK", 0))
 
 
+def diffusion_of(cfg: TrainConfig) -> Diffusion:
+    """The diffusion recipe of a training config."""
+    return Diffusion(schedule=cfg.schedule, prediction=cfg.prediction, min_snr=cfg.min_snr or None,
+                     pairing=cfg.pairing)
+
+
 def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_dir: str | Path | None = None,
           resume: bool = True, device: str | None = None, progress: bool = True, max_seconds: float | None = None,
-          model_config: ModelConfig | None = None) -> dict:
+          model_config: ModelConfig | None = None, init: str | Path | None = None,
+          max_cpu_seconds: float | None = None, prior_cpu_hours: float = 0.0) -> dict:
     """Train (or resume) into ``run_dir``; returns the final metrics dict.
 
-    ``max_seconds`` stops cleanly (checkpoint written) after that much wall time, so a
-    session-limited job can be continued later with the same command.
+    ``max_seconds`` (wall) and ``max_cpu_seconds`` (this process's CPU time, all threads)
+    stop cleanly (checkpoint written), so a session-limited job can be continued later
+    with the same command, and ablations can be run at equal CPU time.
+
+    ``init`` starts a new run from another checkpoint's EMA weights (e.g. the published
+    one the repository ships) with a fresh optimizer and warm-up; its cumulative CPU-hours
+    (``cpu_hours`` in its metadata, else ``prior_cpu_hours``) carry over into this run's.
     """
     rank, world, local = _dist_env()
     if device is None:
@@ -170,15 +201,26 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
     if rank == 0:
         run.mkdir(parents=True, exist_ok=True)
     mcfg = model_config or preset(cfg.preset)
-    diffusion = Diffusion()
+    diffusion = diffusion_of(cfg)
     torch.manual_seed(cfg.seed)
     model = PolycubeNet(mcfg).to(dev)
+    cpu_before = float(prior_cpu_hours) * 3600.0  # CPU-seconds of training behind this run's weights
+    lineage: list = []
+    ckpt = run / "last.pt"
+    if init is not None and not (resume and ckpt.exists()):
+        src = torch.load(init, map_location="cpu", weights_only=False)
+        saved = ModelConfig.from_dict(src["model_config"])
+        if dataclasses.replace(saved, chunk=mcfg.chunk) != mcfg:
+            raise ValueError(f"--init {init}: its model config differs from preset {cfg.preset!r}")
+        model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in src["ema"].items()})
+        cpu_before = float(src.get("cpu_hours", prior_cpu_hours)) * 3600.0
+        lineage = list(src.get("lineage", [])) + [{"init": str(init), "step": src.get("step"),
+                                                   "diffusion": src.get("diffusion")}]
     ema = copy.deepcopy(model).eval()
     for p in ema.parameters():
         p.requires_grad_(False)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     step = 0
-    ckpt = run / "last.pt"
     if resume and ckpt.exists():
         s = torch.load(ckpt, map_location="cpu", weights_only=False)
         saved = ModelConfig.from_dict(s["model_config"])
@@ -188,7 +230,12 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
         ema.load_state_dict(s["ema"])
         opt.load_state_dict(s["optimizer"])
         step = int(s["step"])
-    data = PairData(data_dir)
+        cpu_before = float(s.get("cpu_hours", 0.0)) * 3600.0
+        lineage = list(s.get("lineage", []))
+        if s.get("diffusion") and Diffusion.from_dict(s["diffusion"]).to_dict() != diffusion.to_dict():
+            raise ValueError(f"{ckpt} was trained with diffusion {s['diffusion']}, not {diffusion.to_dict()}; "
+                             f"use a new --out folder (with --init {ckpt} to start from it)")
+    data = PairData(data_dir, max_genus=cfg.max_genus)
     heldout = None
     if eval_dir is not None and rank == 0:
         ev = PairData(eval_dir, limit=cfg.eval_pairs)
@@ -207,6 +254,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
               f"{world} process(es) on {dev}, batch {per_rank * world} x {cfg.points} points, from step {step}",
               flush=True)
     t_start = time.time()
+    c_start = time.process_time()
     window: list[float] = []
     metrics: dict = {}
     log_path = run / "log.jsonl"
@@ -216,6 +264,10 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
 
         bar = tqdm(total=cfg.steps, initial=step, desc="train", unit="step")
     while step < cfg.steps:
+        if cfg.reload_every and step % cfg.reload_every == 0 and len(list_shards(data_dir)) != data.shards:
+            data = PairData(data_dir, max_genus=cfg.max_genus)
+            if rank == 0:
+                print(f"[train] step {step}: {len(data)} pairs from {data.shards} shards", flush=True)
         rng = np.random.default_rng([cfg.seed, step, rank])
         idx = rng.integers(0, len(data), size=per_rank)
         x0, cond = data.batch(idx, cfg.points, rng, cfg)
@@ -237,14 +289,17 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
             bar.update(1)
             bar.set_postfix(l2=f"{np.mean(window[-20:]):.4f}")
         last = step == cfg.steps
-        out_of_time = max_seconds is not None and time.time() - t_start > max_seconds
+        out_of_time = ((max_seconds is not None and time.time() - t_start > max_seconds)
+                       or (max_cpu_seconds is not None and time.process_time() - c_start > max_cpu_seconds))
+        cpu_hours = (cpu_before + time.process_time() - c_start) / 3600.0
         if ddp:  # every rank stops together when rank 0 runs out of time
             flag = torch.tensor([int(out_of_time)], device=dev)
             torch.distributed.broadcast(flag, 0)
             out_of_time = bool(flag.item())
         if rank == 0 and (step % cfg.log_every == 0 or last or out_of_time):
             metrics = {"step": step, "loss_l2": float(np.mean(window)), "lr": lr_at(step - 1, cfg), "grad_norm": gnorm,
-                       "seconds": round(time.time() - t_start, 1), "loss": cfg.loss}
+                       "seconds": round(time.time() - t_start, 1), "cpu_hours": round(cpu_hours, 4),
+                       "pairs": len(data), "loss": cfg.loss}
             window = []
             if heldout is not None:
                 ema.eval()
@@ -260,6 +315,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
                 "train_config": dataclasses.asdict(cfg), "data": str(data.directory), "pairs": len(data),
                 "model": model.state_dict(), "ema": ema.state_dict(), "optimizer": opt.state_dict(),
                 "step": step, "metrics": metrics, "world_size": world, "device": str(dev),
+                "cpu_hours": cpu_hours, "lineage": lineage,
             })
         if out_of_time:
             break
@@ -280,13 +336,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-resume", action="store_true", help="start over even if RUN/last.pt exists")
     ap.add_argument("--device", help="cpu, cuda, cuda:1 (default: cuda:LOCAL_RANK when available)")
     ap.add_argument("--max-minutes", type=float, help="stop cleanly (checkpoint written) after this long")
+    ap.add_argument("--max-cpu-minutes", type=float,
+                    help="stop cleanly after this much CPU time of this process (ablations at equal CPU time)")
+    ap.add_argument("--init", help="start a new run from this checkpoint's EMA weights (e.g. the shipped one)")
+    ap.add_argument("--prior-cpu-hours", type=float, default=0.0,
+                    help="CPU-hours behind --init when its file does not record them")
     ap.add_argument("--no-progress", action="store_true")
     for f in dataclasses.fields(TrainConfig):
         ap.add_argument("--" + f.name.replace("_", "-"), type=type(f.default), default=f.default)
     args = ap.parse_args(argv)
     cfg = TrainConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)})
     out = train(args.data, args.out, cfg, eval_dir=args.eval_data, resume=not args.no_resume, device=args.device,
-                progress=not args.no_progress, max_seconds=None if args.max_minutes is None else 60 * args.max_minutes)
+                progress=not args.no_progress, max_seconds=None if args.max_minutes is None else 60 * args.max_minutes,
+                init=args.init, max_cpu_seconds=None if args.max_cpu_minutes is None else 60 * args.max_cpu_minutes,
+                prior_cpu_hours=args.prior_cpu_hours)
     if _dist_env()[0] == 0:
         print(json.dumps(out))
     return 0

@@ -510,6 +510,19 @@ def test_learned_batches_then_classical_fallback(prefect_harness, part_lib, tiny
         runs = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[_flow_run_of(res)])))
     assert sum(tr.name.startswith("generate-") for tr in runs) == 2
 
+    # the DDIM steps are in the learned polycube's key: other steps generate anew, the same steps reuse
+    def learned_files():
+        return {p.name for p in work.rglob("polycube-*.npz")
+                if library.PolycubeCloud.load(p).meta.get("provenance") == "learned"}
+
+    first = learned_files()
+    parts = [part_lib / f"synth-{GOOD[0]}.stl", part_lib / "wrong_genus.obj"]
+    for steps, expected in ((3, 4), (2, 4)):
+        state, _ = _mesh(parts, out, polycube="auto", checkpoint=str(tiny_checkpoint), steps=steps,
+                         point_budget=budget)
+        assert state.is_completed() and len(learned_files()) == expected
+    assert first < learned_files()
+
 
 def _fake_sources(monkeypatch):
     """``classical``: the part's sidecar relabelled (fast); ``voxel``: gives up."""

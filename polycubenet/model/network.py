@@ -220,7 +220,10 @@ class Denoiser(nn.Module):
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, z_c: torch.Tensor, chunk: int | None = None) -> torch.Tensor:
         B = x_t.shape[0]
-        temb = self.time(timestep_embedding(t, self.latents.shape[1]).to(x_t.dtype))  # (B, d)
+        # one row at a time: a (B, d) GEMM takes another kernel for B = 1 than for B > 1, so a batched
+        # request would differ from the same request alone in the last bits (then amplified by sampling)
+        emb = timestep_embedding(t, self.latents.shape[1]).to(x_t.dtype)
+        temb = torch.cat([self.time(emb[i : i + 1]) for i in range(B)])  # (B, d)
         z = torch.cat([self.cond_proj(z_c), self.latents.unsqueeze(0).expand(B, -1, -1), temb[:, None]], dim=1)
         x = _embed_chunked(self.embed, x_t, chunk, add=temb[:, None])
         for block in self.blocks:
