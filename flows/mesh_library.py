@@ -38,6 +38,7 @@ from prefect_dask import DaskTaskRunner
 from polycubenet import library
 from polycubenet.errors import PartError, PolycubeError
 from polycubenet.pipeline import PipelineConfig
+from polycubenet.policy import leaves_source, source_names
 from tasks import mesh as T
 from tasks.common import results_dir
 
@@ -66,17 +67,6 @@ class _Part:
     @property
     def source(self) -> str:
         return self.sources[0]
-
-
-def source_chain(polycube: str, fallback: bool) -> list[str]:
-    """The polycube sources a part tries in order: ``classical`` is always followed by the
-    voxel polycube (its last resort); ``learned`` and ``oracle`` by both with ``fallback``."""
-    if polycube == "voxel":
-        return ["voxel"]
-    rest = ["classical", "voxel"] if library.classical_available() else ["voxel"]
-    if polycube == "classical":
-        return rest
-    return [polycube] + (rest if fallback else [])
 
 
 def _slug(name: str) -> str:
@@ -155,7 +145,7 @@ def mesh_library(
     paths = library.discover(inputs)
     hashes = [library.file_hash(p) for p in paths]
     names = library.part_names(paths, hashes)
-    sources = source_chain(polycube, fallback)
+    sources = source_names(polycube, fallback, classical=library.classical_available())
     parts: list[_Part] = []
     for p, h, n in zip(paths, hashes, names):
         keys = {}
@@ -288,8 +278,9 @@ def mesh_library(
         if what == "generate":
             for m in who:
                 if isinstance(value, BaseException):
-                    if isinstance(value, PolycubeError) and len(m.sources) > 1:
-                        submit_chain(m, {"error": str(value)})
+                    if len(m.sources) > 1 and leaves_source("learned", value):  # the policy: the next source
+                        msg = str(value) if isinstance(value, PolycubeError) else f"{type(value).__name__}: {value}"
+                        submit_chain(m, {"error": msg})
                     else:
                         unexpected(m, "polycube", value)
                 else:

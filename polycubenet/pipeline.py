@@ -59,6 +59,8 @@ from .errors import PartError, PolycubeError
 from .frame import Transform, canonicalize
 from .hexmesh import partition
 from .polycube import polycube_surface
+from .policy import MODES as POLYCUBE_MODES
+from .policy import Attempt, error_reason, invalid_mesh_reason, mesh_rank, run_chain, source_names  # noqa: F401
 from .pullback import PullbackConfig, pull_back
 from .quality import QualityReport, quality_report
 from .registration import align
@@ -97,12 +99,12 @@ class PipelineConfig:
     voxel: VoxelConfig = VoxelConfig()
 
 
-#: the values of ``PipelineConfig.polycube`` (and of the command-line ``--polycube``)
-POLYCUBE_MODES = ("auto", "learned", "classical", "voxel")
+#: the values of ``PipelineConfig.polycube`` (and of the command-line ``--polycube``): ``policy.MODES``
 
 
 def source_chain(source, config: PipelineConfig) -> list[tuple[str, Callable]]:
-    """The polycube sources :func:`mesh_surface` tries in order, as ``(name, source)``.
+    """The polycube sources :func:`mesh_surface` tries in order, as ``(name, source)``
+    (the order is :func:`polycubenet.policy.source_names`'s).
 
     ``learned``: the injected source alone (the classical chain when it is None);
     ``classical``: the surface-flattening construction, then the voxel polycube;
@@ -110,27 +112,11 @@ def source_chain(source, config: PipelineConfig) -> list[tuple[str, Callable]]:
     """
     from .voxel import VoxelSource
 
-    classical = [("classical", ClassicalSource(config.classical)), ("voxel", VoxelSource(config.voxel))]
-    if config.polycube == "voxel":
-        return classical[1:]
-    if config.polycube == "classical" or source is None:
-        return classical
-    if config.polycube == "auto":
-        return [("learned", source)] + classical
-    return [("learned", source)]
-
-
-def mesh_rank(meta: dict) -> tuple:
-    """Order of pulled-back meshes (``HexMesh.meta``): a valid one first, then the higher minimum SJ."""
-    sj = meta.get("sj_min")
-    return (bool(meta.get("valid")), -np.inf if sj is None else float(sj))
-
-
-def invalid_mesh_reason(label: str, meta: dict) -> str:
-    """Why a pulled-back mesh made the pipeline try the next polycube (one sentence)."""
-    sj = meta.get("sj_min")
-    sj = "unknown" if sj is None else f"{float(sj):.3f}"
-    return f"the {label} polycube's hex mesh is not valid (minimum scaled Jacobian {sj})"
+    if config.polycube not in POLYCUBE_MODES:
+        raise ValueError(f"polycube must be one of {POLYCUBE_MODES}; got {config.polycube!r}")
+    mode = "classical" if source is None and config.polycube in ("learned", "auto") else config.polycube
+    objects = {"learned": source, "classical": ClassicalSource(config.classical), "voxel": VoxelSource(config.voxel)}
+    return [(name, objects[name]) for name in source_names(mode)]
 
 
 class PolycubeSource(Protocol):
@@ -231,6 +217,7 @@ class PartResult:
 class _Clock:
     def __init__(self, timings: dict):
         self.timings = timings
+        self.tracker = None  # a policy.StageTracker to keep informed of the stage
 
     def __call__(self, name: str):
         clock = self
@@ -239,6 +226,8 @@ class _Clock:
             def __enter__(self):
                 self.t0 = time.perf_counter()
                 clock.stage = name
+                if clock.tracker is not None:
+                    clock.tracker.stage = name
 
             def __exit__(self, *exc):
                 clock.timings[name] = time.perf_counter() - self.t0
@@ -276,25 +265,11 @@ def mesh_surface(
         genus = res.part_meta.get("genus")
         with clock("sample"):
             sample = poisson_disk(Vc, F, config.n_sample, seed=config.seed)
-        if config.polycube not in POLYCUBE_MODES:
-            raise ValueError(f"polycube must be one of {POLYCUBE_MODES}; got {config.polycube!r}")
-        chain = source_chain(source, config)
-        best = None  # (key, attempt) of the best pulled-back mesh so far
-        reasons = []
-        attempts_timings = []
-        for i, (label, src) in enumerate(chain):
-            last = i == len(chain) - 1
-            t_att: dict = {}
-            clock.timings = t_att
-            try:
-                cloud, P, N, poly = _polycube_stages(src, sample, Vc, F, genus, config, name, clock, res)
-            except PolycubeError as exc:
-                if last and best is None:
-                    exc.fallback_reason = "; ".join(reasons) or None
-                    raise
-                reasons.append(f"{clock.stage}: {exc.reason}")
-                attempts_timings.append((False, t_att))
-                continue
+        chain = dict(source_chain(source, config))
+
+        def attempt(label: str, tracker) -> Attempt:
+            clock.timings, clock.tracker = tracker.seconds, tracker
+            cloud, P, N, poly = _polycube_stages(chain[label], sample, Vc, F, genus, config, name, clock, res)
             with clock("register"):
                 if hasattr(cloud, "correspondence"):  # classical and voxel polycubes know their map exactly
                     corr = cloud.correspondence()
@@ -312,24 +287,29 @@ def mesh_surface(
                     mesh_c = _pull_back_classical(mesh_pc, corr, Vc, F, config)
                 else:
                     mesh_c = pull_back(mesh_pc, corr.map_points, Vc, F, config.pullback)
-            attempt = (cloud, poly, mesh_c, t_att, len(attempts_timings))
-            attempts_timings.append((True, t_att))
-            key = mesh_rank(mesh_c.meta)
-            if best is None or key > best[0]:
-                best = (key, attempt)
-            if mesh_c.meta.get("valid") or last:
-                break
-            reasons.append(f"pullback: {invalid_mesh_reason(cloud.meta.get('provenance') or label, mesh_c.meta)}")
-        cloud, poly, mesh_c, t_kept, kept_index = best[1]
-        # the kept attempt's timings under their own names, the others' summed as rejected_<stage>
-        clock.timings = timings
-        for j, (_, t_att) in enumerate(attempts_timings):
-            for k, v in t_att.items():
-                name_k = k if j == kept_index else "rejected_" + k
-                timings[name_k] = timings.get(name_k, 0.0) + v
+            return Attempt(label, dict(mesh_c.meta), payload=(cloud, poly, mesh_c), seconds=tracker.seconds,
+                           label=cloud.meta.get("provenance") or label)
+
+        outcome = run_chain(list(chain), attempt)
+        clock.timings, clock.tracker = timings, None
+        if outcome.chosen is None:
+            exc = outcome.error
+            exc.fallback_reason = outcome.fallback_reason
+            clock.stage = exc.stage
+            if not isinstance(exc, (PartError, PolycubeError)):  # the learned source alone failed otherwise
+                err = PolycubeError(f"{exc.source} polycube failed at {exc.stage}: {error_reason(exc)}", name)
+                err.fallback_reason = outcome.fallback_reason
+                raise err from exc
+            raise exc
+        cloud, poly, mesh_c = outcome.chosen.payload
+        # the kept attempt's timings under their own names, the others' as rejected_<stage>
+        for k, v in outcome.chosen.seconds.items():
+            timings[k] = timings.get(k, 0.0) + v
+        for k, v in outcome.rejected_seconds.items():
+            timings["rejected_" + k] = timings.get("rejected_" + k, 0.0) + v
         res.cloud, res.polycube = cloud, poly
         res.provenance = cloud.meta.get("provenance")
-        res.fallback_reason = "; ".join(reasons) or None
+        res.fallback_reason = outcome.fallback_reason
         with clock("report"):
             mesh = HexMesh(T.inverse(mesh_c.points), mesh_c.hexes, mesh_c.boundary, meta=dict(mesh_c.meta))
             Vo = np.asarray(V, float) if not canonical else Vc

@@ -137,96 +137,79 @@ def mesh_chain(name: str, path: str, loaded: str, sources: list[str], keys: dict
 
 
 def _chain(state, name, path, loaded, sources, keys, paths, config, formats, out_dir, result_storage, learned):
-    """The body of :func:`mesh_chain` (``state["stage"]`` follows the stage reached)."""
+    """The body of :func:`mesh_chain` (``state["stage"]`` follows the stage reached): each source's
+    stages as tasks, the choice between sources by :func:`polycubenet.policy.run_chain`."""
     from polycubenet.errors import PolycubeError
-    from polycubenet.pipeline import invalid_mesh_reason, mesh_rank
+    from polycubenet.policy import Attempt, run_chain
 
     from .common import FINAL_ERRORS
 
     storage = Path(result_storage)
-    reasons: list[str] = []
-    rejected: dict = {}
-    candidates: list[dict] = []
+    records: dict = {}  # source -> stage -> record, also for a source whose attempt raised
 
-    def reject(att: dict):
-        for s, rec in att.items():
-            rejected[s] = rejected.get(s, 0.0) + float(rec.get("seconds") or 0.0)
-
-    def run(stage: str, fn, src: str, **kw) -> dict:
-        state["stage"] = stage
+    def run(stage: str, fn, src: str, tracker, **kw) -> dict:
+        state["stage"] = tracker.stage = stage
         if stage == "export":
             fresh = library.load_json(Path(kw["out_dir"]) / "result.json").get("key") == keys[src][stage]
         else:
             fresh = Path(kw["dest"]).exists()
         t = fn.with_options(result_storage=storage, refresh_cache=not fresh)  # a stale record is refreshed
-        return t(key=keys[src][stage], name=name, **kw)
+        rec = t(key=keys[src][stage], name=name, **kw)
+        records[src][stage] = rec
+        tracker.seconds[stage] = float(rec.get("seconds") or 0.0)
+        return rec
 
-    def failed(stage: str, exc: BaseException, source: str, att: dict) -> dict:
+    def attempt(src: str, tracker) -> Attempt:
+        p = paths[src]
+        att = records[src] = {}
+        state["stage"] = tracker.stage = "polycube"
+        if src == "learned":
+            if learned is None or "error" in learned:
+                raise PolycubeError((learned or {}).get("error") or "no generated cloud")
+            att["polycube"] = learned["record"]
+            tracker.seconds["polycube"] = float(learned["record"].get("seconds") or 0.0)
+        else:
+            run("polycube", polycube_cloud, src, tracker, kind=src, path=path, loaded=loaded, dest=p["polycube"],
+                config=config)
+        run("extract", cleanup_extract, src, tracker, cloud=att["polycube"]["path"], loaded=loaded, dest=p["extract"],
+            config=config)
+        run("register", register, src, tracker, extracted=att["extract"]["path"], loaded=loaded, dest=p["register"],
+            config=config)
+        run("pullback", partition_pullback, src, tracker, extracted=att["extract"]["path"],
+            corr=att["register"]["path"], loaded=loaded, dest=p["pullback"], config=config)
+        return Attempt(src, library.pullback_quality(att["pullback"]["path"]), payload=att,
+                       seconds=dict(tracker.seconds))
+
+    def failed(stage: str, exc: BaseException, source: str, reasons) -> dict:
         return {"status": "failed", "stage": stage, "error": f"{type(exc).__name__}: {exc}", "source": source,
-                "keys": keys[source], "records": dict(att), "rejected_seconds": rejected,
+                "keys": keys[source], "records": dict(records.get(source) or {}), "rejected_seconds": rejected,
                 "fallback": "; ".join(reasons) or None}
 
-    chosen = None
-    for i, src in enumerate(sources):
-        last = i == len(sources) - 1
-        p = paths[src]
-        att: dict = {}
-        try:
-            if src == "learned":
-                state["stage"] = "polycube"
-                if learned is None or "error" in learned:
-                    raise PolycubeError((learned or {}).get("error") or "no generated cloud")
-                att["polycube"] = learned["record"]
-            else:
-                att["polycube"] = run("polycube", polycube_cloud, src, kind=src, path=path, loaded=loaded,
-                                      dest=p["polycube"], config=config)
-            att["extract"] = run("extract", cleanup_extract, src, cloud=att["polycube"]["path"], loaded=loaded,
-                                 dest=p["extract"], config=config)
-        except PolycubeError as exc:
-            reject(att)
-            reason = f"{src} polycube rejected at {state['stage']}: {exc}"
-            if not last:
-                reasons.append(reason)
-                continue
-            if not candidates:
-                return failed(state["stage"], exc, src, att)
-            reasons.append(reason)
-            break
-        except FINAL_ERRORS as exc:
-            return failed(state["stage"], exc, src, att)
-        try:
-            att["register"] = run("register", register, src, extracted=att["extract"]["path"], loaded=loaded,
-                                  dest=p["register"], config=config)
-            att["pullback"] = run("pullback", partition_pullback, src, extracted=att["extract"]["path"],
-                                  corr=att["register"]["path"], loaded=loaded, dest=p["pullback"], config=config)
-        except FINAL_ERRORS as exc:
-            return failed(state["stage"], exc, src, att)
-        quality = library.pullback_quality(att["pullback"]["path"])
-        cand = {"source": src, "records": att, "quality": quality}
-        if quality["valid"] or last:
-            best = max(candidates + [cand], key=lambda c: mesh_rank(c["quality"]))
-            if best is not cand:
-                reasons.append(f"pullback: {invalid_mesh_reason(src, quality)}")
-                reject(att)
-            chosen = best
-            break
-        candidates.append(cand)
-        reasons.append(f"pullback: {invalid_mesh_reason(src, quality)}")
-        reject(att)
-    if chosen is None:  # the last source was rejected after earlier meshes that were not valid
-        chosen = max(candidates, key=lambda c: mesh_rank(c["quality"]))
-    if not chosen["quality"]["valid"] and len(candidates) + (chosen not in candidates) > 1:
-        reasons.append(f"no polycube gave a valid mesh: kept the {chosen['source']} one's "
-                       "(the highest minimum scaled Jacobian)")
-    if chosen in candidates:  # counted as rejected when it was left; kept now
-        for s, rec in chosen["records"].items():
-            rejected[s] = max(0.0, rejected.get(s, 0.0) - float(rec.get("seconds") or 0.0))
-    src, att = chosen["source"], dict(chosen["records"])
+    rejected: dict = {}
     try:
-        att["export"] = run("export", report_export, src, hexc=att["pullback"]["path"],
+        outcome = run_chain(list(sources), attempt)
+    except FINAL_ERRORS as exc:  # a bad part: final whatever the source
+        reason = getattr(exc, "fallback_reason", None)
+        return failed(exc.stage, exc, exc.source, [reason] if reason else [])
+    rejected = {s: round(v, 4) for s, v in outcome.rejected_seconds.items()}
+    if outcome.chosen is None:
+        exc = outcome.error
+        if not isinstance(exc, FINAL_ERRORS):  # the learned source alone, failing otherwise than by its polycube
+            exc = PolycubeError(f"learned polycube failed at {exc.stage}: {type(exc).__name__}: {exc}", name)
+        return failed(outcome.error.stage, exc, outcome.error_source, outcome.reasons)
+    src, att = outcome.chosen.source, dict(outcome.chosen.payload)
+    records[src] = att
+    try:
+        att["export"] = run("export", report_export, src, _NoTracker(), hexc=att["pullback"]["path"],
                             extracted=att["extract"]["path"], loaded=loaded, out_dir=out_dir, formats=formats)
     except FINAL_ERRORS as exc:
-        return failed("export", exc, src, att)
+        return failed("export", exc, src, outcome.reasons)
     return {"status": "meshed", "stage": "export", "error": None, "source": src, "keys": keys[src], "records": att,
-            "rejected_seconds": {s: round(v, 4) for s, v in rejected.items() if v > 0},
-            "fallback": "; ".join(reasons) or None}
+            "rejected_seconds": rejected, "fallback": outcome.fallback_reason}
+
+
+class _NoTracker:
+    """A stage tracker for the export, which is after the source choice."""
+
+    def __init__(self):
+        self.stage, self.seconds = "export", {}

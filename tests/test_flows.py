@@ -164,16 +164,17 @@ def test_classical_cloud_key_follows_the_construction_version(monkeypatch, tmp_p
 
 def test_voxel_source_by_name_and_its_key(monkeypatch, tmp_path):
     from polycubenet import voxel
-    from flows.mesh_library import source_chain
+    from polycubenet.policy import source_names
 
     assert isinstance(library.make_source("voxel", tmp_path / "p.stl", None), voxel.VoxelSource)
 
     before = _source_keys("voxel", tmp_path / "p.stl")
     monkeypatch.setattr(voxel, "VERSION", voxel.VERSION + "-next")
     assert _source_keys("voxel", tmp_path / "p.stl")["polycube"] != before["polycube"]
-    assert source_chain("classical", False) == ["classical", "voxel"]
-    assert source_chain("learned", True) == ["learned", "classical", "voxel"]
-    assert source_chain("oracle", False) == ["oracle"] and source_chain("voxel", True) == ["voxel"]
+    assert source_names("classical", False) == ["classical", "voxel"]
+    assert source_names("learned", True) == ["learned", "classical", "voxel"] == source_names("auto")
+    assert source_names("oracle", False) == ["oracle"] and source_names("voxel", True) == ["voxel"]
+    assert source_names("auto", classical=False) == ["learned", "voxel"]
 
 
 def test_polycube_to_frame_follows_a_signed_permutation():

@@ -53,7 +53,7 @@ def test_auto_falls_back_when_the_learned_polycube_fails_validation(l_block_file
     assert res.status == "meshed"
     assert res.provenance == "classical"
     assert "genus 1 differs from the part's genus 0" in res.fallback_reason
-    assert res.fallback_reason.startswith("extract:")
+    assert res.fallback_reason.startswith("learned polycube rejected at extract:")
     assert res.polycube.meta["provenance"] == "classical" and res.polycube.meta["genus"] == 0
     q = res.report.to_dict()
     assert q["valid"] and q["sj_min"] > 0.2 and q["surface"]["hausdorff"] < 0.02
@@ -73,19 +73,83 @@ def test_auto_falls_back_when_the_learned_source_raises(l_block_file):
     res = mesh_part(l_block_file, _Raises(), PipelineConfig(polycube="auto", **SMALL))
     assert _Raises.calls == 1
     assert res.provenance == "classical" and res.status == "meshed"
-    assert res.fallback_reason == "polycube: model produced no usable cloud"
+    assert res.fallback_reason == "learned polycube rejected at polycube: model produced no usable cloud"
 
 
-def test_auto_keeps_a_valid_learned_polycube(l_block_file):
+class _Broken:
+    """A learned source whose cloud is fine but whose attempt breaks later (or at once)."""
+
+    def __init__(self, inner=None, exc=None):
+        self.inner, self.exc = inner, exc
+
+    def __call__(self, sample, V, F, config):
+        if self.exc is not None:
+            raise self.exc
+        return self.inner(sample, V, F, config)
+
+
+@pytest.mark.parametrize("where", ["generate", "register", "pullback"])
+def test_auto_falls_back_on_any_error_of_the_learned_attempt(l_block_file, monkeypatch, where):
+    """Not only a rejected polycube: any exception of the learned attempt (a model bug, CPD running out of
+    memory, a pullback error) hands the part to the classical chain, and the reason names the stage."""
+    from polycubenet import pipeline
+
+    if where == "generate":
+        src = _Broken(exc=RuntimeError("CUDA error: device-side assert triggered"))
+    else:
+        src = _Broken(inner=OracleSource(_l_truth(l_block_file)))
+        if where == "register":
+            monkeypatch.setattr(pipeline, "align", lambda *a, **k: (_ for _ in ()).throw(MemoryError("CPD")))
+        else:
+            real = pipeline.pull_back
+
+            def pull(mesh_pc, fn, V, F, cfg):  # only the learned attempt uses pull_back directly
+                raise FloatingPointError("overflow in the harmonic solve")
+
+            monkeypatch.setattr(pipeline, "pull_back", pull)
+            monkeypatch.setattr(pipeline, "_pull_back_classical",
+                                lambda mesh_pc, corr, Vc, F, config: real(mesh_pc, corr.map_points, Vc, F, config.pullback))
+    res = mesh_part(l_block_file, src, PipelineConfig(polycube="auto", **SMALL))
+    assert res.status == "meshed" and res.provenance == "classical" and res.report.to_dict()["valid"]
+    stage = {"generate": "polycube", "register": "register", "pullback": "pullback"}[where]
+    assert res.fallback_reason.startswith(f"learned polycube rejected at {stage}: ")
+    exc_name = {"generate": "RuntimeError", "register": "MemoryError", "pullback": "FloatingPointError"}[where]
+    assert exc_name in res.fallback_reason
+
+
+def test_a_bad_part_is_final_and_learned_alone_fails_with_a_clear_reason(l_block_file, monkeypatch):
+    from polycubenet.errors import PartError
+
+    calls = []
+
+    class BadPart:
+        def __call__(self, sample, V, F, config):
+            calls.append(1)
+            raise PartError(None, "the part is not watertight")
+
+    with pytest.raises(PartError):  # a PartError is not a polycube problem: no other source is tried
+        mesh_part(l_block_file, BadPart(), PipelineConfig(polycube="auto", **SMALL))
+    assert calls == [1]
+    # learned alone: an unexpected error is a failed part with its cause, not a crash of the batch
+    res = mesh_part_safe(l_block_file, _Broken(exc=RuntimeError("bad weights")), PipelineConfig(polycube="learned", **SMALL))
+    assert res.status == "failed" and res.stage == "polycube"
+    assert "learned polycube failed at polycube: RuntimeError: bad weights" in res.error
+
+
+def _l_truth(l_block_file) -> Polycube:
+    """The L-block is its own polycube (in its canonical frame)."""
     from polycubenet.frame import canonicalize
 
     m = trimesh.load(l_block_file)
     Vc, _ = canonicalize(np.asarray(m.vertices, float), np.asarray(m.faces))
-    grid = [np.unique(np.round(Vc[:, a], 9)) for a in range(3)]  # the part is its own polycube
+    grid = [np.unique(np.round(Vc[:, a], 9)) for a in range(3)]
     centres = np.stack(np.meshgrid(*[0.5 * (g[1:] + g[:-1]) for g in grid], indexing="ij"), -1).reshape(-1, 3)
     inside = trimesh.Trimesh(Vc, m.faces, process=False).ray.contains_points(centres)
-    truth = Polycube(*grid, inside.reshape([len(g) - 1 for g in grid]))
-    res = mesh_part(l_block_file, OracleSource(truth), PipelineConfig(polycube="auto", **SMALL))
+    return Polycube(*grid, inside.reshape([len(g) - 1 for g in grid]))
+
+
+def test_auto_keeps_a_valid_learned_polycube(l_block_file):
+    res = mesh_part(l_block_file, OracleSource(_l_truth(l_block_file)), PipelineConfig(polycube="auto", **SMALL))
     assert res.provenance == "oracle" and res.fallback_reason is None
     assert res.row()["provenance"] == "oracle" and res.row()["fallback_reason"] is None
     assert not any(k.startswith("rejected_") for k in res.timings)
@@ -180,7 +244,8 @@ def test_a_rejected_classical_polycube_falls_back_to_the_voxel_one(l_block_file,
     monkeypatch.setattr(classical.ClassicalSource, "__call__", refuse)
     res = mesh_part(l_block_file, _Raises(), PipelineConfig(polycube="auto", **SMALL))
     assert res.provenance == "voxel" and res.report.to_dict()["valid"]
-    assert res.fallback_reason == "polycube: model produced no usable cloud; polycube: l_block.stl: flattening folded"
+    assert res.fallback_reason == ("learned polycube rejected at polycube: model produced no usable cloud; "
+                                   "classical polycube rejected at polycube: l_block.stl: flattening folded")
     # learned alone and voxel alone
     res = mesh_part(l_block_file, _MustNotRun(), PipelineConfig(polycube="voxel", **SMALL))
     assert res.provenance == "voxel" and res.fallback_reason is None

@@ -1,0 +1,192 @@
+"""The polycube fallback policy, written once.
+
+Which polycube sources a part tries and in what order, when a source is left for the
+next one, and which mesh is kept.  Both drivers run it: :func:`polycubenet.pipeline.mesh_surface`
+(one process, no orchestrator) and ``tasks.mesh.mesh_chain`` (every stage a cached,
+retried Prefect task).  A driver only supplies ``attempt(source, seconds)``: run that
+source's stages (polycube -> extract -> register -> pullback), add each stage's seconds
+to ``seconds`` as it finishes, and return an :class:`Attempt`; the policy decides the rest.
+
+The rules:
+
+* **Order** (:func:`source_names`): ``auto`` = learned, then the classical chain;
+  ``classical`` = surface flattening, then the voxel polycube (its last resort, which
+  exists for every closed part); ``voxel`` alone; ``learned`` / ``oracle`` alone, or
+  followed by the classical chain with ``fallback``.
+* **Leaving a source** (:func:`leaves_source`): a rejected polycube
+  (:class:`~polycubenet.errors.PolycubeError`, at any stage) always hands the part to
+  the next source; for the learned source, so does *any* other error of its attempt
+  (generation, registration, pullback), since the classical chain does not depend on it.
+  A :class:`~polycubenet.errors.PartError` is final: a bad part is bad for every source.
+  A source whose pulled-back mesh is not valid is also left, its mesh kept as a candidate.
+* **The kept mesh**: the first valid one; when none is, the candidate with the highest
+  minimum scaled Jacobian (:func:`mesh_rank`), reported as not valid.
+
+Every reason a source was left is one sentence in :attr:`Outcome.reasons`
+(``"<source> polycube rejected at <stage>: <reason>"`` or
+``"pullback: the <source> polycube's hex mesh is not valid (...)"``), and the seconds
+spent on left sources are summed per stage in :attr:`Outcome.rejected_seconds`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable
+
+import numpy as np
+
+from .errors import PartError, PolycubeError
+
+#: the values of ``--polycube`` / ``PipelineConfig.polycube``
+MODES = ("auto", "learned", "classical", "voxel")
+
+
+def source_names(mode: str, fallback: bool = False, classical: bool = True) -> list[str]:
+    """The sources a part tries, in order, for polycube mode ``mode``.
+
+    ``fallback`` adds the classical chain after ``learned`` / ``oracle`` (``auto`` always has
+    it); ``classical=False`` (the flattening construction unavailable) leaves the voxel
+    polycube alone in the classical chain.
+    """
+    if mode == "voxel":
+        return ["voxel"]
+    rest = (["classical"] if classical else []) + ["voxel"]
+    if mode == "classical":
+        return rest
+    if mode == "auto":
+        return ["learned"] + rest
+    return [mode] + (rest if fallback else [])
+
+
+def leaves_source(source: str, exc: BaseException) -> bool:
+    """Whether ``exc``, raised by ``source``'s attempt, hands the part to the next source."""
+    if isinstance(exc, PartError):
+        return False
+    if isinstance(exc, PolycubeError):
+        return True
+    # the learned attempt may fail in ways the classical chain never depends on (the model, CPD, ...)
+    return source == "learned" and isinstance(exc, Exception)
+
+
+def mesh_rank(meta: dict) -> tuple:
+    """Order of pulled-back meshes (``HexMesh.meta`` or a quality dict): a valid one first,
+    then the higher minimum scaled Jacobian."""
+    sj = meta.get("sj_min")
+    return (bool(meta.get("valid")), -np.inf if sj is None else float(sj))
+
+
+def invalid_mesh_reason(label: str, meta: dict) -> str:
+    """Why a pulled-back mesh made the chain try the next polycube (one sentence)."""
+    sj = meta.get("sj_min")
+    sj = "unknown" if sj is None else f"{float(sj):.3f}"
+    return f"the {label} polycube's hex mesh is not valid (minimum scaled Jacobian {sj})"
+
+
+def error_reason(exc: BaseException) -> str:
+    """The sentence of an error: a PolycubeError's own reason, otherwise ``Type: message``."""
+    if isinstance(exc, PolycubeError):
+        return getattr(exc, "reason", None) or str(exc)
+    return f"{type(exc).__name__}: {exc}"
+
+
+@dataclasses.dataclass
+class Attempt:
+    """One source's pulled-back mesh: ``quality`` has at least ``valid`` and ``sj_min``;
+    ``payload`` is whatever the driver needs to export it; ``label`` names it in reasons
+    (default: the source)."""
+
+    source: str
+    quality: dict
+    payload: Any = None
+    seconds: dict = dataclasses.field(default_factory=dict)
+    label: str | None = None
+
+
+@dataclasses.dataclass
+class Outcome:
+    """What :func:`run_chain` decided: the kept attempt (None when every source was
+    rejected before a mesh; ``error`` is then the last source's error), the reasons the
+    other sources were left and the seconds they cost per stage."""
+
+    chosen: Attempt | None
+    reasons: list[str]
+    rejected_seconds: dict
+    attempts: list[Attempt]
+    error: BaseException | None = None
+    error_source: str | None = None
+
+    @property
+    def fallback_reason(self) -> str | None:
+        return "; ".join(self.reasons) or None
+
+
+class StageTracker:
+    """The ``seconds`` dict a driver fills, plus the stage it is in (for the reason of an error)."""
+
+    def __init__(self):
+        self.seconds: dict = {}
+        self.stage = "polycube"
+
+
+def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt]) -> Outcome:
+    """Try ``sources`` in order with the policy of this module (see the module docstring).
+
+    ``attempt(source, tracker)`` runs the source's stages, setting ``tracker.stage`` as it goes
+    and adding stage seconds to ``tracker.seconds``; it returns an :class:`Attempt` or raises.
+    An error that :func:`leaves_source` does not cover is raised as it is, with
+    ``exc.stage`` and ``exc.source`` set, after ``exc.fallback_reason`` records the sources
+    left before it.
+    """
+    if not sources:
+        raise ValueError("no polycube source to try")
+    reasons: list[str] = []
+    rejected: dict = {}
+    candidates: list[Attempt] = []
+    attempts: list[Attempt] = []
+    chosen: Attempt | None = None
+    last_error: tuple | None = None
+
+    def reject(seconds: dict) -> None:
+        for k, v in seconds.items():
+            rejected[k] = rejected.get(k, 0.0) + float(v or 0.0)
+
+    for i, src in enumerate(sources):
+        last = i == len(sources) - 1
+        tracker = StageTracker()
+        try:
+            att = attempt(src, tracker)
+        except BaseException as exc:
+            exc.stage = getattr(exc, "stage", None) or tracker.stage
+            exc.source = src
+            if not leaves_source(src, exc):
+                exc.fallback_reason = "; ".join(reasons) or None
+                raise
+            reject(tracker.seconds)
+            reasons.append(f"{src} polycube rejected at {tracker.stage}: {error_reason(exc)}")
+            last_error = (exc, src)
+            continue
+        if not att.seconds:
+            att.seconds = dict(tracker.seconds)
+        attempts.append(att)
+        if att.quality.get("valid") or last:
+            chosen = att
+            break
+        candidates.append(att)
+        reasons.append(f"pullback: {invalid_mesh_reason(att.label or src, att.quality)}")
+        reject(att.seconds)
+    pool = candidates + ([chosen] if chosen is not None and chosen not in candidates else [])
+    if not pool:  # every source was rejected before it gave a mesh
+        exc, src = last_error
+        reasons.pop()  # the last source's own rejection is the error itself
+        return Outcome(None, reasons, rejected, attempts, error=exc, error_source=src)
+    best = max(pool, key=lambda a: mesh_rank(a.quality))
+    if chosen is not None and best is not chosen:  # the last source's mesh is worse than an earlier one
+        reasons.append(f"pullback: {invalid_mesh_reason(chosen.label or chosen.source, chosen.quality)}")
+        reject(chosen.seconds)
+    if best in candidates:  # counted as rejected when it was left; kept now
+        for k, v in best.seconds.items():
+            rejected[k] = max(0.0, rejected.get(k, 0.0) - float(v or 0.0))
+    if not best.quality.get("valid") and len(pool) > 1:
+        reasons.append(f"no polycube gave a valid mesh: kept the {best.label or best.source} one's "
+                       "(the highest minimum scaled Jacobian)")
+    return Outcome(best, reasons, {k: v for k, v in rejected.items() if v > 0}, attempts)
