@@ -115,6 +115,8 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/model_failures.json"))
     ap.add_argument("--figure", default=str(ROOT / "docs/model_failures.png"))
     ap.add_argument("--show", type=int, default=2, help="held-out pairs and parts in the figure (each)")
+    ap.add_argument("--curve", default=str(ROOT / "benchmarks/results/learning_curve.jsonl"),
+                    help="append this checkpoint's point of the learning curve here ('' to skip)")
     args = ap.parse_args(argv)
 
     ev = evaluate(args.checkpoint, args.heldout, args.count, n_out=args.n_out, steps=args.steps, device="cpu",
@@ -164,6 +166,23 @@ def main(argv=None) -> int:
                            "heldout_genus_le2_categories": low_counts, "part_categories": part_counts,
                            "heldout_rows": ev["rows"], "part_rows": prow})
     print(f"wrote {args.json} and {args.figure}")
+    if args.curve:
+        import json
+
+        import torch
+
+        meta = torch.load(args.checkpoint, map_location="cpu", weights_only=False)
+        point = {"checkpoint": Path(args.checkpoint).name, "step": meta.get("step"),
+                 "cpu_hours": meta.get("cpu_hours"), "diffusion": meta.get("diffusion"),
+                 "pairs": ev["pairs"], "n_out": args.n_out, "steps": args.steps,
+                 "chamfer_median": ev["chamfer_median"], "exact": ev["exact_structure_rate"],
+                 "genus_match": ev["genus_match_rate"],
+                 "exact_genus_le2": ev.get("exact_structure_rate_genus_le2"),
+                 "genus_match_genus_le2": ev.get("genus_match_rate_genus_le2"),
+                 "parts_accepted": sum(r["accepted"] for r in prow), "parts": len(prow)}
+        with open(args.curve, "a") as fh:
+            fh.write(json.dumps(point) + "\n")
+        print(f"appended to {args.curve}: {point}")
     return 0
 
 

@@ -151,6 +151,10 @@ def _print_summary(out: str) -> None:
     n_bad = sum(r["status"] == "meshed" and not (r.get("quality") or {}).get("valid") for r in rows)
     print(f"\n{len(rows)} parts: {n_ok} meshed ({n_bad} of them flagged invalid: see quality.json), {len(rows) - n_ok} failed.  manifest: {Path(out) / library.MANIFEST}"
           f"  report: {Path(out) / library.REPORT}")
+    last = m.get("last_run") or {}
+    if last.get("rejected_polycube_seconds"):
+        print(f"this run: {last.get('seconds', 0):.0f} s, of which {last['rejected_polycube_seconds']:.0f} s of stage time "
+              "went to polycubes that were rejected (see each row's rejected_* timings)")
 
 
 def main(argv: list[str] | None = None) -> int:

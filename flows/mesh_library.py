@@ -249,9 +249,28 @@ def mesh_library(
 
     rows_by_name: dict = {}
 
+    parameters = {"inputs": [str(i) for i in inputs], "formats": formats, "polycube": polycube, "fallback": fallback,
+                  "config": config, "checkpoint": checkpoint, "steps": steps, "work": str(work_p),
+                  "load_kw": load_kw or {}}
+    old_rows = library.read_manifest(out_p)["parts"] if merge else []
+
+    def write_manifest(final: bool) -> Path:
+        """The manifest as it stands (rewritten atomically as each part finishes, so a killed run leaves
+        a true one): the earlier runs' rows merged with this run's finished parts."""
+        rows = [rows_by_name[p.name] for p in parts if p.name in rows_by_name]
+        computed = sum(len(r["computed"]) for r in rows)
+        reused = sum(len(r["reused"]) for r in rows)
+        rejected = round(sum(v for r in rows for k, v in r["timings"].items() if k.startswith("rejected_")), 2)
+        last = {"flow_run": run_id, "parts": len(parts), "finished": len(rows), "complete": final,
+                "seconds": round(time.perf_counter() - t_start, 2), "computed_stages": computed,
+                "reused_stages": reused, "rejected_polycube_seconds": rejected}
+        return library.write_manifest(out_p, library.merge_rows(old_rows, rows), parameters=parameters,
+                                      extra={"last_run": last})
+
     def finish(part: _Part, status: str, error: str | None = None):
         part.status, part.error = status, error
         rows_by_name[part.name] = row = _row(part, out_p, run_id)
+        write_manifest(final=False)
         if artifacts:
             _part_artifact(row, out_p)
         progress.step(part)
@@ -311,18 +330,14 @@ def mesh_library(
         if any(p.source == "learned" for p in gen_pool):
             flush_generation(final=loads_left == 0)
 
-    rows = [rows_by_name.get(p.name) or _row(p, out_p, run_id) for p in parts]
+    for p in parts:  # every part has finished; a part that never did is a row too
+        rows_by_name.setdefault(p.name, _row(p, out_p, run_id))
+    rows = [rows_by_name[p.name] for p in parts]
     computed = sum(len(r["computed"]) for r in rows)
     reused = sum(len(r["reused"]) for r in rows)
-    old = library.read_manifest(out_p)["parts"] if merge else []
-    all_rows = library.merge_rows(old, rows)
-    parameters = {"inputs": [str(i) for i in inputs], "formats": formats, "polycube": polycube, "fallback": fallback,
-                  "config": config, "checkpoint": checkpoint, "steps": steps, "work": str(work_p),
-                  "load_kw": load_kw or {}}
-    manifest = library.write_manifest(out_p, all_rows, parameters=parameters,
-                                      extra={"last_run": {"flow_run": run_id, "parts": len(rows),
-                                                          "seconds": round(time.perf_counter() - t_start, 2),
-                                                          "computed_stages": computed, "reused_stages": reused}})
+    rejected = sum(v for r in rows for k, v in r["timings"].items() if k.startswith("rejected_"))
+    manifest = write_manifest(final=True)
+    all_rows = library.merge_rows(old_rows, rows)
     report = library.write_report_html(out_p, all_rows)
     if artifacts:
         from prefect.artifacts import create_table_artifact
@@ -331,7 +346,7 @@ def mesh_library(
                               description=f"{out_p}: one row per part")
     counts = {s: sum(r["status"] == s for r in rows) for s in ("meshed", "failed")}
     logger.info(f"done: {counts['meshed']} meshed, {counts['failed']} failed; stages computed {computed}, "
-                f"reused {reused}; manifest {manifest}")
+                f"reused {reused}; {rejected:.1f} s went to rejected polycubes; manifest {manifest}")
     return {"out": str(out_p), "manifest": str(manifest), "report": str(report), "counts": counts,
             "computed": computed, "reused": reused, "rows": rows}
 

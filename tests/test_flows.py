@@ -358,6 +358,11 @@ def test_sigkill_mid_batch_then_rerun(prefect_harness, part_lib, tmp_path, monke
             proc.kill()
     finished = {p.parent.name for p in out.glob("*/result.json")}
     assert 1 <= len(finished) < 3
+    # the manifest was rewritten as each part finished: it exists, says the run is incomplete, and
+    # every part it lists is whole (a kill between a part's result and the manifest leaves it out)
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["last_run"]["complete"] is False
+    assert {r["name"] for r in manifest["parts"]} <= finished and manifest["parts"]
     work = out / ".work"
     for f in work.rglob("*.npz"):  # a file with its final name is whole
         with np.load(f, allow_pickle=False) as z:
