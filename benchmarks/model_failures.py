@@ -40,7 +40,7 @@ def part_rows(checkpoint, parts: list[Path], n_out: int, steps: int, n_sample: i
     from polycubenet.cleanup import remove_outliers
     from polycubenet.errors import PolycubeError
     from polycubenet.frame import canonicalize
-    from polycubenet.inference import generate, load_model
+    from polycubenet.inference import generate, load_model, part_anchors
     from polycubenet.io import load_part
     from polycubenet.sampling import poisson_disk
     from polycubenet.structure import extract
@@ -52,7 +52,8 @@ def part_rows(checkpoint, parts: list[Path], n_out: int, steps: int, n_sample: i
         Vc, _ = canonicalize(part.vertices, part.faces)
         sample = poisson_disk(Vc, part.faces, n_sample, seed=0)
         t0 = time.perf_counter()
-        (cloud,) = generate([sample.points], n_out, model=loaded, steps=steps, seed=0, device="cpu")
+        anchors = [part_anchors(Vc, part.faces, n_out, 0)] if loaded.model.config.anchored else None
+        (cloud,) = generate([sample.points], n_out, model=loaded, steps=steps, seed=0, device="cpu", anchors=anchors)
         t_gen = time.perf_counter() - t0
         genus = int(part.meta["genus"])
         row = {"part": path.stem, "genus": genus, "gen_seconds": round(t_gen, 2)}
@@ -121,8 +122,6 @@ def main(argv=None) -> int:
 
     ev = evaluate(args.checkpoint, args.heldout, args.count, n_out=args.n_out, steps=args.steps, device="cpu",
                   keep_clouds=args.show)
-    for r in ev["rows"]:
-        r["category"] = "accepted" if r["error"] is None else rejection_category(r["error"])
     parts = sorted(Path(args.parts).glob("*.stl"))
     prow, pclouds = part_rows(args.checkpoint, parts, args.n_out, args.steps)
 

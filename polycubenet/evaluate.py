@@ -67,6 +67,15 @@ def rejection_category(message: str) -> str:
     return "other"
 
 
+def row_category(row: dict) -> str:
+    """One held-out row's outcome: ``exact``, ``right genus, other structure``, or why it failed."""
+    if row.get("error"):
+        return rejection_category(row["error"])
+    if not row.get("genus_match"):
+        return "genus differs"
+    return "exact" if row.get("exact") else "right genus, other structure"
+
+
 def _pairs(directory: str | Path, count: int):
     n = 0
     for path in list_shards(directory):
@@ -101,7 +110,14 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
                 c = c[np.random.default_rng(k).choice(len(c), n_in, replace=False)]
             conds.append(c)
         tg = time.perf_counter()
-        clouds = generate(conds, n_out, model=loaded, steps=steps, seed=seed + b, device=device)
+        anchors = None
+        if loaded.model.config.anchored:  # the shard has no mesh: the anchors are the part's condition points
+            anchors = []
+            for (s, k), c in zip(chunk, conds):
+                cp = np.asarray(s["cond_points"][k], np.float32)
+                pick = np.random.default_rng(k).choice(len(cp), n_out, replace=n_out > len(cp))
+                anchors.append(cp[pick])
+        clouds = generate(conds, n_out, model=loaded, steps=steps, seed=seed + b, device=device, anchors=anchors)
         t_gen = (time.perf_counter() - tg) / len(chunk)
         for (s, k), cloud, c in zip(chunk, clouds, conds):
             truth = np.asarray(s["target_points"][k], float)
@@ -151,7 +167,7 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
             out["genus_match_rate_genus_le2"] = float(np.mean([r["genus_match"] for r in low]))
         cats: dict = {}
         for r in rows:
-            c = "accepted" if r["error"] is None else rejection_category(r["error"])
+            r["category"] = c = row_category(r)
             cats[c] = cats.get(c, 0) + 1
         out["categories"] = cats
     out["rows"] = rows

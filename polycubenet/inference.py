@@ -25,7 +25,7 @@ import torch
 
 from .data import PolycubeCloud
 from .model.checkpoint import Loaded, load_checkpoint
-from .model.diffusion import from_network, to_network
+from .model.diffusion import anchored_from_network, anchored_to_network, from_network, to_network
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "polycubenet-cpu.pt"
 DEFAULT_POINT_BUDGET = 1 << 19  # condition + output points per batch
@@ -98,18 +98,35 @@ def plan_batches(n_in: Sequence[int], n_out: Sequence[int], point_budget: int = 
     return batches
 
 
+def part_anchors(V: np.ndarray, F: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """``(n, 3)`` anchor points for an anchored model: area-uniform samples of the part ``(V, F)``
+    (canonical frame), a function of the part and ``seed`` only."""
+    from .sampling import uniform_sample
+
+    return uniform_sample(np.asarray(V, float), np.asarray(F), int(n), np.random.default_rng(seed)).points.astype(np.float32)
+
+
 def _sample_batch(loaded: Loaded, conds: list[np.ndarray], n_out: int, seeds: list[int], *, steps, stride, eta,
-                  device: str, chunk: int | None, progress: Callable | None) -> list[np.ndarray]:
+                  device: str, chunk: int | None, progress: Callable | None,
+                  anchors: list[np.ndarray] | None = None) -> list[np.ndarray]:
     model, diffusion = loaded.model, loaded.diffusion
-    scale = model.config.xyz_scale
+    cfg = model.config
+    scale = cfg.xyz_scale
     dev = torch.device(device)
     cond = to_network(torch.as_tensor(np.stack(conds), dtype=torch.float32, device=dev), None, scale)
     gens = [torch.Generator(device=dev).manual_seed(int(s)) for s in seeds]
     autocast = (lambda: torch.autocast("cuda", dtype=torch.bfloat16)) if dev.type == "cuda" else None
+    anchor = None
+    if cfg.anchored:
+        _, anchor = anchored_to_network(torch.as_tensor(np.stack(anchors), dtype=torch.float32, device=dev), None, None,
+                                        scale, cfg.anchor_gain)
     x = diffusion.sample(model, cond, n_out, steps=steps, stride=stride, eta=eta, generator=gens,
-                         chunk=chunk or min(model.config.chunk, MAX_CHUNK), autocast=autocast, progress=progress)
-    out = from_network(x, scale).cpu().numpy().astype(np.float32)
-    return list(out)
+                         chunk=chunk or min(cfg.chunk, MAX_CHUNK), autocast=autocast, progress=progress, anchor=anchor)
+    if cfg.anchored:
+        out = anchored_from_network(x, anchor, scale, cfg.anchor_gain)
+    else:
+        out = from_network(x, scale)
+    return list(out.cpu().numpy().astype(np.float32))
 
 
 def generate(
@@ -125,8 +142,13 @@ def generate(
     point_budget: int | None = None,
     chunk: int | None = None,
     progress: Callable[[int, int], None] | None = None,
+    anchors: Sequence[np.ndarray] | None = None,
 ) -> list[np.ndarray]:
     """Polycube clouds for ``conditions`` (each ``(N_i, 3)``, canonical frame).
+
+    An anchored model (``ModelConfig.anchored``) also needs ``anchors``: per request the
+    ``(n_out_i, 3)`` points of the part whose places on the polycube it generates
+    (:func:`part_anchors`); each output point is its anchor moved onto the polycube.
 
     Parameters
     ----------
@@ -158,11 +180,21 @@ def generate(
         raise ValueError("every n_out must be >= 1")
     if steps is None and torch.device(device).type == "cpu":
         steps = DEFAULT_STEPS_CPU
+    anch = None
+    if loaded.model.config.anchored:
+        if anchors is None or len(anchors) != len(conds):
+            raise ValueError("this model is anchored: pass anchors, one (n_out, 3) array of points on each part "
+                             "(polycubenet.inference.part_anchors)")
+        anch = [np.asarray(a, dtype=np.float32) for a in anchors]
+        for i, (a, n) in enumerate(zip(anch, outs)):
+            if a.shape != (n, 3) or not np.isfinite(a).all():
+                raise ValueError(f"anchors {i}: expected a finite ({n}, 3) array, got shape {a.shape}")
     batches = plan_batches([len(c) for c in conds], outs, point_budget or DEFAULT_POINT_BUDGET)
     results: list[np.ndarray | None] = [None] * len(conds)
     for b, idx in enumerate(batches):
         clouds = _sample_batch(loaded, [conds[i] for i in idx], outs[idx[0]], [request_seed(seed, conds[i]) for i in idx],
-                               steps=steps, stride=stride, eta=eta, device=device, chunk=chunk, progress=None)
+                               steps=steps, stride=stride, eta=eta, device=device, chunk=chunk, progress=None,
+                               anchors=None if anch is None else [anch[i] for i in idx])
         for i, cloud in zip(idx, clouds):
             results[i] = cloud
         if progress is not None:
@@ -184,8 +216,10 @@ class ModelSource:
     def __call__(self, sample, V, F, config) -> PolycubeCloud:
         loaded = load_model(self.model, self.device)
         t0 = time.perf_counter()
+        seed = self.seed + config.seed
+        anchors = [part_anchors(V, F, config.n_polycube, seed)] if loaded.model.config.anchored else None
         (cloud,) = generate([sample.points], config.n_polycube, model=loaded, steps=self.steps,
-                            seed=self.seed + config.seed, device=self.device)
+                            seed=seed, device=self.device, anchors=anchors)
         meta = {
             "provenance": "learned",
             "checkpoint": str(loaded.path.name if loaded.path else "memory"),

@@ -78,13 +78,14 @@ class PairData:
         shards = list_shards(directory)
         if not shards:
             raise FileNotFoundError(f"no shard-*.npz in {directory} (make them with python -m polycubenet.synth)")
-        cond, tp, tn, genus, seeds = [], [], [], [], []
+        cond, tp, tn, genus, seeds, tos = [], [], [], [], [], []
         n = 0
         for path in shards:
             s = load_shard(path)
             cond.append(s["cond_points"])
             tp.append(s["target_points"])
             tn.append(s["target_normals"])
+            tos.append(s["target_on_shape"])
             genus.append(s["genus"])
             seeds.append(s["seeds"])
             n += len(s)
@@ -93,13 +94,14 @@ class PairData:
         self.cond = np.concatenate(cond)[:limit]
         self.target_points = np.concatenate(tp)[:limit]
         self.target_normals = np.concatenate(tn)[:limit]
+        self.target_on_shape = np.concatenate(tos)[:limit]  # the part's point of each target point
         self.genus = np.concatenate(genus)[:limit]
         self.seeds = np.concatenate(seeds)[:limit]
         if max_genus >= 0:
             keep = self.genus <= max_genus
             if not keep.any():
                 raise ValueError(f"no pair of genus <= {max_genus} in {directory}")
-            for name in ("cond", "target_points", "target_normals", "genus", "seeds"):
+            for name in ("cond", "target_points", "target_normals", "target_on_shape", "genus", "seeds"):
                 setattr(self, name, getattr(self, name)[keep])
         self.directory = Path(directory)
         self.shards = len(shards)
@@ -107,9 +109,11 @@ class PairData:
     def __len__(self) -> int:
         return len(self.cond)
 
-    def batch(self, idx: np.ndarray, points: int, rng: np.random.Generator, cfg: TrainConfig | None = None
-              ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(x0, cond)`` in network units for pairs ``idx``; augmentation when ``cfg`` is given."""
+    def batch(self, idx: np.ndarray, points: int, rng: np.random.Generator, cfg: TrainConfig | None = None,
+              anchors: bool = False):
+        """``(x0, cond)`` for pairs ``idx`` (target xyz + normals, condition xyz; the canonical frame's
+        units), augmented when ``cfg`` is given; with ``anchors`` also the part point of each target
+        point, ``(x0, cond, anchor)``, augmented alike."""
         B = len(idx)
         N, M = self.cond.shape[1], self.target_points.shape[1]
         ci = np.stack([rng.choice(N, size=points, replace=points > N) for _ in range(B)])
@@ -117,17 +121,19 @@ class PairData:
         g = np.take_along_axis(self.cond[idx], ci[..., None], axis=1).astype(np.float64)
         p = np.take_along_axis(self.target_points[idx], ti[..., None], axis=1).astype(np.float64)
         nrm = np.take_along_axis(self.target_normals[idx], ti[..., None], axis=1).astype(np.float32)
+        a = np.take_along_axis(self.target_on_shape[idx], ti[..., None], axis=1).astype(np.float64)
         if cfg is not None and cfg.scale_aug > 0:
             s = rng.uniform(1 - cfg.scale_aug, 1 + cfg.scale_aug, size=(B, 1, 3))
-            g, p = g * s, p * s
+            g, p, a = g * s, p * s, a * s
             # back to diagonal 1 (as frame.canonicalize would) using the full condition cloud
             full = self.cond[idx].astype(np.float64) * s
             diag = np.linalg.norm(full.max(axis=1) - full.min(axis=1), axis=-1)[:, None, None]
-            g, p = g / diag, p / diag
+            g, p, a = g / diag, p / diag, a / diag
         if cfg is not None and cfg.jitter > 0:
             g = g + rng.normal(scale=cfg.jitter, size=g.shape)
-        return (torch.from_numpy(np.concatenate([p.astype(np.float32), nrm], axis=-1)),
-                torch.from_numpy(g.astype(np.float32)))
+        out = (torch.from_numpy(np.concatenate([p.astype(np.float32), nrm], axis=-1)),
+               torch.from_numpy(g.astype(np.float32)))
+        return out + (torch.from_numpy(a.astype(np.float32)),) if anchors else out
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:
@@ -145,14 +151,27 @@ def ema_update(ema: torch.nn.Module, model: torch.nn.Module, decay: float) -> No
 
 
 @torch.no_grad()
-def heldout_loss(model, diffusion: Diffusion, x0: torch.Tensor, cond: torch.Tensor, seed: int = 0) -> float:
+def _to_net(batch, mcfg: ModelConfig, dev) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """``(x0, cond, anchor)`` in network units on ``dev`` (anchor None for a free-point model)."""
+    from .model.diffusion import anchored_to_network
+
+    x0, cond = batch[0].to(dev), batch[1].to(dev)
+    cond = to_network(cond, None, mcfg.xyz_scale)
+    if mcfg.anchored:
+        x0, anchor = anchored_to_network(batch[2].to(dev), x0[..., :3], x0[..., 3:], mcfg.xyz_scale, mcfg.anchor_gain)
+        return x0, cond, anchor
+    return to_network(x0[..., :3], x0[..., 3:], mcfg.xyz_scale), cond, None
+
+
+def heldout_loss(model, diffusion: Diffusion, x0: torch.Tensor, cond: torch.Tensor, seed: int = 0,
+                 anchor: torch.Tensor | None = None) -> float:
     """Mean L2 error of the recipe's prediction target (noise, or v) at fixed timesteps and noise
     (comparable across the steps of one run, not across recipes: compare those with evaluate)."""
     g = torch.Generator(device=x0.device).manual_seed(seed)
     B = x0.shape[0]
     t = torch.linspace(0, diffusion.T - 1, B, device=x0.device).long()
     noise = torch.randn(x0.shape, generator=g, device=x0.device)
-    out = model(diffusion.q_sample(x0, t, noise), t, cond)
+    out = model(diffusion.q_sample(x0, t, noise), t, cond, **({} if anchor is None else {"anchor": anchor}))
     target = noise
     if diffusion.prediction == "v":
         ab = diffusion._ab(t, x0)
@@ -182,7 +201,8 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
 
     ``init`` starts a new run from another checkpoint's EMA weights (e.g. the published
     one the repository ships) with a fresh optimizer and warm-up; its cumulative CPU-hours
-    (``cpu_hours`` in its metadata, else ``prior_cpu_hours``) carry over into this run's.
+    (``cpu_hours`` in its metadata, plus ``prior_cpu_hours`` for training it does not record)
+    carry over into this run's.
     """
     rank, world, local = _dist_env()
     if device is None:
@@ -209,11 +229,17 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
     ckpt = run / "last.pt"
     if init is not None and not (resume and ckpt.exists()):
         src = torch.load(init, map_location="cpu", weights_only=False)
-        saved = ModelConfig.from_dict(src["model_config"])
-        if dataclasses.replace(saved, chunk=mcfg.chunk) != mcfg:
-            raise ValueError(f"--init {init}: its model config differs from preset {cfg.preset!r}")
-        model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in src["ema"].items()})
-        cpu_before = float(src.get("cpu_hours", prior_cpu_hours)) * 3600.0
+        # every tensor of the same name and shape is taken (so a model that only adds an input, like
+        # the anchored one, starts from the other's weights); the rest keeps its fresh initialisation
+        own = model.state_dict()
+        take = {k: (v.float() if v.is_floating_point() else v) for k, v in src["ema"].items()
+                if k in own and own[k].shape == v.shape}
+        model.load_state_dict(take, strict=False)
+        fresh = sorted(set(own) - set(take))
+        if fresh and rank == 0:
+            print(f"[train] --init {init}: {len(take)} tensors taken, {len(fresh)} kept fresh: {', '.join(fresh)}",
+                  flush=True)
+        cpu_before = (float(src.get("cpu_hours") or 0.0) + float(prior_cpu_hours)) * 3600.0
         lineage = list(src.get("lineage", [])) + [{"init": str(init), "step": src.get("step"),
                                                    "diffusion": src.get("diffusion")}]
     ema = copy.deepcopy(model).eval()
@@ -239,8 +265,8 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
     heldout = None
     if eval_dir is not None and rank == 0:
         ev = PairData(eval_dir, limit=cfg.eval_pairs)
-        heldout = ev.batch(np.arange(len(ev)), cfg.points, np.random.default_rng(12345))
-        heldout = (heldout[0].to(dev), heldout[1].to(dev))
+        heldout = _to_net(ev.batch(np.arange(len(ev)), cfg.points, np.random.default_rng(12345),
+                                   anchors=mcfg.anchored), mcfg, dev)
     net = model
     if ddp:
         from torch.nn.parallel import DistributedDataParallel
@@ -270,14 +296,13 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
                 print(f"[train] step {step}: {len(data)} pairs from {data.shards} shards", flush=True)
         rng = np.random.default_rng([cfg.seed, step, rank])
         idx = rng.integers(0, len(data), size=per_rank)
-        x0, cond = data.batch(idx, cfg.points, rng, cfg)
-        x0 = to_network(x0[..., :3].to(dev), x0[..., 3:].to(dev), scale)
-        cond = to_network(cond.to(dev), None, scale)
+        x0, cond, anchor = _to_net(data.batch(idx, cfg.points, rng, cfg, anchors=mcfg.anchored), mcfg, dev)
         for group in opt.param_groups:
             group["lr"] = lr_at(step, cfg)
         gen = torch.Generator(device=dev).manual_seed(int(rng.integers(2**62)))
         model.train()
-        loss, stats = diffusion.training_loss(net, x0, cond, loss=cfg.loss, generator=gen, autocast=autocast)
+        loss, stats = diffusion.training_loss(net, x0, cond, loss=cfg.loss, generator=gen, autocast=autocast,
+                                              anchor=anchor)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         gnorm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.clip))
@@ -303,7 +328,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
             window = []
             if heldout is not None:
                 ema.eval()
-                metrics["heldout_l2"] = heldout_loss(ema, diffusion, *heldout)
+                metrics["heldout_l2"] = heldout_loss(ema, diffusion, *heldout[:2], anchor=heldout[2])
             with open(log_path, "a") as fh:
                 fh.write(json.dumps(metrics) + "\n")
             if bar is None and progress:
@@ -340,7 +365,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="stop cleanly after this much CPU time of this process (ablations at equal CPU time)")
     ap.add_argument("--init", help="start a new run from this checkpoint's EMA weights (e.g. the shipped one)")
     ap.add_argument("--prior-cpu-hours", type=float, default=0.0,
-                    help="CPU-hours behind --init when its file does not record them")
+                    help="CPU-hours of training behind --init that its file does not record (added to what it does)")
     ap.add_argument("--no-progress", action="store_true")
     for f in dataclasses.fields(TrainConfig):
         ap.add_argument("--" + f.name.replace("_", "-"), type=type(f.default), default=f.default)

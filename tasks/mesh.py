@@ -42,12 +42,16 @@ def generate_batch(loaded: list[str], dests: list[str], n_out: list[int], key: s
     cloud already exists, so a batch is never recomputed for parts it already did."""
     from polycubenet import inference  # lazily: the model is optional for every other stage
 
-    samples = [library.read_loaded(p)[1] for p in loaded]
+    parts = [library.read_loaded(p) for p in loaded]
     records = []
 
     def run():
-        clouds = inference.generate([s.points for s in samples], n_out, model=checkpoint, steps=steps,
-                                    seed=seed, device=device, point_budget=point_budget)
+        model = inference.load_model(checkpoint, device)
+        anchors = None
+        if model.model.config.anchored:  # each part's own points, moved onto its polycube by the model
+            anchors = [inference.part_anchors(p[0].vertices, p[0].faces, n, seed) for p, n in zip(parts, n_out)]
+        clouds = inference.generate([p[1].points for p in parts], n_out, model=model, steps=steps,
+                                    seed=seed, device=device, point_budget=point_budget, anchors=anchors)
         meta = {"checkpoint": None if checkpoint is None else str(checkpoint), "steps": steps, "seed": seed}
         return [library.write_generated(np.asarray(c), d, meta) for c, d in zip(clouds, dests)]
 

@@ -172,3 +172,42 @@ def test_model_source_returns_a_learned_cloud(ckpt):
     # the source's seed and the config's seed together select the noise, as documented
     (direct,) = generate([sample.points], 70, model=ckpt, steps=STEPS, seed=2 + 4, device="cpu")
     np.testing.assert_allclose(cloud.points, direct[:, :3], atol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def anchored_ckpt(tmp_path_factory):
+    import dataclasses
+
+    torch.manual_seed(1)
+    net = PolycubeNet(dataclasses.replace(preset("tiny"), anchored=True))
+    with torch.no_grad():
+        torch.nn.init.normal_(net.denoiser.out.weight, std=0.2)
+    path = tmp_path_factory.mktemp("model") / "tiny-anchored.pt"
+    save_checkpoint(path, {"kind": "published", "model_config": net.config.to_dict(),
+                           "diffusion": Diffusion(prediction="v", schedule="cosine_ztsnr").to_dict(),
+                           "ema": net.state_dict()})
+    return path
+
+
+def test_an_anchored_model_moves_each_anchor_a_bounded_step(anchored_ckpt):
+    """Each output point is its anchor plus a displacement the network can represent (the clipped
+    x0 over xyz_scale * anchor_gain); the anchors are required, and batching changes nothing."""
+    from polycubenet.inference import part_anchors
+
+    loaded = load_model(anchored_ckpt, "cpu")
+    cfg = loaded.model.config
+    conds = [_cloud(100, 20 + i) for i in range(3)]
+    with pytest.raises(ValueError, match="anchored"):
+        generate(conds, 50, model=loaded, steps=STEPS, device="cpu")
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float) - 0.3
+    F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    anchors = [part_anchors(V, F, 50, seed=i) for i in range(3)]
+    out = generate(conds, 50, model=loaded, steps=STEPS, device="cpu", anchors=anchors)
+    bound = 1.0 / (cfg.xyz_scale * cfg.anchor_gain) + 1e-5
+    moved = [np.abs(o[:, :3] - a).max() for o, a in zip(out, anchors)]
+    assert max(moved) <= bound and min(moved) > 1e-3  # moved, but not further than representable
+    np.testing.assert_allclose(np.linalg.norm(out[0][:, 3:], axis=1), 1.0, atol=1e-5)
+    (alone,) = generate([conds[2]], 50, model=loaded, steps=STEPS, device="cpu", anchors=[anchors[2]])
+    np.testing.assert_allclose(alone, out[2], atol=1e-5)
+    with pytest.raises(ValueError, match="anchors 0"):
+        generate(conds[:1], 50, model=loaded, steps=STEPS, device="cpu", anchors=[anchors[0][:10]])

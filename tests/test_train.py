@@ -135,3 +135,35 @@ def test_ddp_with_two_cpu_processes(shards, tmp_path):
     assert s["step"] == 3 and s["world_size"] == 2
     assert len((run / "log.jsonl").read_text().splitlines()) == 3
     assert load_checkpoint(run / "last.pt").meta["step"] == 3
+
+
+def test_anchors_are_the_part_points_of_the_drawn_targets(shards):
+    """For an anchored model each drawn target point comes with the part point it is the image of,
+    transformed by the same augmentation (so target - anchor is the true displacement)."""
+    data = PairData(shards)
+    cfg = dataclasses.replace(CFG, jitter=0.0, scale_aug=0.0)
+    x0, cond, anchor = data.batch(np.array([1, 4]), 40, np.random.default_rng(3), cfg, anchors=True)
+    assert anchor.shape == (2, 40, 3)
+    for b, k in enumerate((1, 4)):
+        for q, a in zip(x0[b, :, :3].numpy(), anchor[b].numpy()):
+            i = np.flatnonzero(np.all(np.isclose(data.target_points[k], q, atol=1e-6), axis=1))
+            assert len(i) >= 1 and np.allclose(data.target_on_shape[k][i[0]], a, atol=1e-6)
+    # with the anisotropic scaling both move together: displacements stay small (the raw data's bound)
+    x0, _, anchor = data.batch(np.array([1, 4]), 40, np.random.default_rng(3), CFG, anchors=True)
+    raw = np.abs(data.target_points[[1, 4]] - data.target_on_shape[[1, 4]]).max()
+    assert np.abs(x0[..., :3].numpy() - anchor.numpy()).max() <= 1.3 * raw + 1e-6
+
+
+def test_an_anchored_model_trains_resumes_and_publishes(shards, tmp_path):
+    run = tmp_path / "run"
+    cfg = dataclasses.replace(CFG, preset="tiny", steps=4)
+    from polycubenet.model import preset as model_preset
+
+    mcfg = dataclasses.replace(model_preset("tiny"), anchored=True)
+    out = train(shards, run, cfg, eval_dir=shards, progress=False, model_config=mcfg)
+    assert out["step"] == 4 and np.isfinite(out["loss_l2"]) and np.isfinite(out["heldout_l2"])
+    from polycubenet.model.checkpoint import load_checkpoint, publish
+
+    pub = publish(run / "last.pt", tmp_path / "pub.pt")
+    loaded = load_checkpoint(pub)
+    assert loaded.model.config.anchored and loaded.meta["cpu_hours"] > 0

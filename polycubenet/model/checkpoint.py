@@ -68,6 +68,10 @@ def publish(train_ckpt: str | Path, out: str | Path, metrics: dict | None = None
         "train_config": s.get("train_config"),
         "train_metrics": s.get("metrics"),
         "metrics": dict(metrics or {}),
+        # cumulative CPU-hours of training behind these weights and where they came from, so a
+        # run started from the published file (``train --init``) continues the count
+        "cpu_hours": s.get("cpu_hours"),
+        "lineage": s.get("lineage", []),
         **(extra or {}),
     }
     return save_checkpoint(out, out_state)

@@ -45,6 +45,24 @@ def from_network(x: torch.Tensor, xyz_scale: float) -> torch.Tensor:
     return torch.cat([p, n], dim=-1)
 
 
+def anchored_to_network(anchor: torch.Tensor, points: torch.Tensor | None, normals: torch.Tensor | None,
+                        xyz_scale: float, gain: float) -> tuple[torch.Tensor | None, torch.Tensor]:
+    """``(x0, anchor)`` in network units for an anchored model: ``x0 = [(points - anchor) * xyz_scale * gain,
+    normals]`` (None without points) and the anchor scaled like any position."""
+    a = anchor * xyz_scale
+    if points is None:
+        return None, a
+    return torch.cat([(points - anchor) * (xyz_scale * gain), normals], dim=-1), a
+
+
+def anchored_from_network(x: torch.Tensor, anchor_net: torch.Tensor, xyz_scale: float, gain: float) -> torch.Tensor:
+    """Inverse of :func:`anchored_to_network` for a generated cloud: anchor + displacement, unit normals."""
+    p = anchor_net / xyz_scale + x[..., :3] / (xyz_scale * gain)
+    n = x[..., 3:6]
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+    return torch.cat([p, n], dim=-1)
+
+
 def _cosine_alpha_bar(T: int, s: float = 0.008) -> np.ndarray:
     t = np.arange(T + 1, dtype=np.float64) / T
     f = np.cos((t + s) / (1 + s) * math.pi / 2) ** 2
@@ -154,6 +172,7 @@ class Diffusion:
         loss: str = "hybrid",
         generator: torch.Generator | None = None,
         autocast: Callable | None = None,
+        anchor: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, dict]:
         """One batch: random t and noise, predict the noise, the hybrid (or l2) loss.
 
@@ -167,11 +186,12 @@ class Diffusion:
         if self.pairing == "ot":
             noise = ot_pair_noise(x0, noise)
         x_t = self.q_sample(x0, t, noise)
+        extra = {} if anchor is None else {"anchor": anchor}
         if autocast is not None:
             with autocast():
-                out = model(x_t, t, cond)
+                out = model(x_t, t, cond, **extra)
         else:
-            out = model(x_t, t, cond)
+            out = model(x_t, t, cond, **extra)
         if self.prediction == "v":
             ab = self._ab(t, x0)
             target = ab.sqrt() * noise - (1 - ab).sqrt() * x0
@@ -267,10 +287,12 @@ class Diffusion:
         clip: float | None = 1.0,
         autocast: Callable | None = None,
         progress: Callable[[int, int], None] | None = None,
+        anchor: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Generate ``(B, n_out, point_dim)`` clouds in network units for conditions ``cond``.
 
-        ``model`` has ``encode(cond, chunk)`` and ``denoise(x_t, t, z_c, chunk)``.  All
+        ``model`` has ``encode(cond, chunk)`` and ``denoise(x_t, t, z_c, chunk[, anchor])``; an
+        anchored model gets ``anchor`` ``(B, n_out, 3)`` (network units) with every call.  All
         randomness comes from ``generator`` (on the device of ``cond``), so a seed
         reproduces the output; a list of generators gives each batch element its own
         stream (its result then does not depend on the rest of the batch).
@@ -286,7 +308,7 @@ class Diffusion:
         for i, (t, t_prev) in enumerate(pairs):
             tt = torch.full((B,), t, device=dev, dtype=torch.long)
             with (autocast() if autocast is not None else _null()):
-                eps = model.denoise(x, tt, z_c, chunk=chunk)
+                eps = model.denoise(x, tt, z_c, chunk=chunk, **({} if anchor is None else {"anchor": anchor}))
             eps = eps.float()
             noise = _randn(x.shape, dev, generator) if eta > 0 and t_prev >= 0 else None
             x = self.ddim_step(x, eps, t, t_prev, eta, noise, clip)

@@ -205,10 +205,12 @@ class ConditionEncoder(nn.Module):
 class Denoiser(nn.Module):
     """eps_theta(x_t, z_c, t): TS blocks over x_t with latents ``[z_c, z_init, embed(t)]``."""
 
-    def __init__(self, cfg: StreamConfig, point_dim: int, cond_width: int, fourier: int):
+    def __init__(self, cfg: StreamConfig, point_dim: int, cond_width: int, fourier: int, anchored: bool = False):
         super().__init__()
         d = cfg.dim
-        self.embed = PointEmbed(point_dim, d, fourier)
+        self.anchored = anchored
+        # anchored: the input is [anchor xyz, x_t] and the Fourier features are the anchor's position's
+        self.embed = PointEmbed(point_dim + (3 if anchored else 0), d, fourier)
         self.latents = nn.Parameter(torch.randn(cfg.latents, d) * 0.02)
         self.cond_proj = nn.Linear(cond_width, d)
         self.time = nn.Sequential(nn.Linear(d, d), nn.SiLU(), nn.Linear(d, d))
@@ -218,14 +220,18 @@ class Denoiser(nn.Module):
         nn.init.zeros_(self.out.weight)
         nn.init.zeros_(self.out.bias)
 
-    def forward(self, x_t: torch.Tensor, t: torch.Tensor, z_c: torch.Tensor, chunk: int | None = None) -> torch.Tensor:
+    def forward(self, x_t: torch.Tensor, t: torch.Tensor, z_c: torch.Tensor, chunk: int | None = None,
+                anchor: torch.Tensor | None = None) -> torch.Tensor:
         B = x_t.shape[0]
+        if self.anchored != (anchor is not None):
+            raise ValueError("an anchored denoiser needs anchor points (and only it takes them)")
         # one row at a time: a (B, d) GEMM takes another kernel for B = 1 than for B > 1, so a batched
         # request would differ from the same request alone in the last bits (then amplified by sampling)
         emb = timestep_embedding(t, self.latents.shape[1]).to(x_t.dtype)
         temb = torch.cat([self.time(emb[i : i + 1]) for i in range(B)])  # (B, d)
         z = torch.cat([self.cond_proj(z_c), self.latents.unsqueeze(0).expand(B, -1, -1), temb[:, None]], dim=1)
-        x = _embed_chunked(self.embed, x_t, chunk, add=temb[:, None])
+        inp = x_t if anchor is None else torch.cat([anchor.to(x_t.dtype), x_t], dim=-1)
+        x = _embed_chunked(self.embed, inp, chunk, add=temb[:, None])
         for block in self.blocks:
             x, z = block(x, z, chunk=chunk)
         if chunk is not None and x.shape[1] > chunk:
@@ -259,16 +265,19 @@ class PolycubeNet(nn.Module):
         super().__init__()
         self.config = config
         self.encoder = ConditionEncoder(config.encoder, config.cond_dim, config.fourier)
-        self.denoiser = Denoiser(config.denoiser, config.point_dim, config.encoder.dim, config.fourier)
+        self.denoiser = Denoiser(config.denoiser, config.point_dim, config.encoder.dim, config.fourier,
+                                 anchored=config.anchored)
 
     def encode(self, cond: torch.Tensor, chunk: int | None = None) -> torch.Tensor:
         return self.encoder(cond, chunk=chunk)
 
-    def denoise(self, x_t: torch.Tensor, t: torch.Tensor, z_c: torch.Tensor, chunk: int | None = None) -> torch.Tensor:
-        return self.denoiser(x_t, t, z_c, chunk=chunk)
+    def denoise(self, x_t: torch.Tensor, t: torch.Tensor, z_c: torch.Tensor, chunk: int | None = None,
+                anchor: torch.Tensor | None = None) -> torch.Tensor:
+        return self.denoiser(x_t, t, z_c, chunk=chunk, anchor=anchor)
 
-    def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
-        return self.denoise(x_t, t, self.encode(cond))
+    def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: torch.Tensor,
+                anchor: torch.Tensor | None = None) -> torch.Tensor:
+        return self.denoise(x_t, t, self.encode(cond), anchor=anchor)
 
 
 def count_parameters(module: nn.Module) -> int:
