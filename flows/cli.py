@@ -48,7 +48,8 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--checkpoint", default=None, help="model checkpoint (default: the shipped one)")
         p.add_argument("--steps", type=int, default=None, help="DDIM steps")
         p.add_argument("--points", type=int, default=None, help="points sampled on each part (default 4096)")
-        p.add_argument("--polycube-points", type=int, default=None, help="points of each polycube cloud")
+        p.add_argument("--polycube-points", type=int, default=None, help="points of each classical/voxel polycube cloud")
+        p.add_argument("--learned-points", type=int, default=None, help="points the model generates (default 4096)")
         p.add_argument("--seed", type=int, default=0)
         p.add_argument("--work", default=None, help="stage files and cache (default OUT/.work)")
         runner_args(p)
@@ -95,7 +96,7 @@ def _mesh_kwargs(a) -> dict:
     elif a.hexes is not None:
         kw["target_hexes"] = a.hexes
     for src, dst in (("checkpoint", "checkpoint"), ("steps", "steps"), ("points", "n_sample"),
-                     ("polycube_points", "n_polycube"), ("work", "work")):
+                     ("polycube_points", "n_polycube"), ("learned_points", "n_learned"), ("work", "work")):
         if getattr(a, src) is not None:
             kw[dst] = getattr(a, src)
     return kw

@@ -82,6 +82,7 @@ def mesh_library(
     fallback: bool = True,
     n_sample: int = 4096,
     n_polycube: int = 16384,
+    n_learned: int = 4096,
     n_register: int = 4096,
     target_hexes: int | None = 5000,
     target_size: float | None = None,
@@ -108,7 +109,7 @@ def mesh_library(
         surface-flattening polycube, then the voxel polycube as a last resort), ``voxel``
     fallback : after a ``learned`` / ``oracle`` polycube that fails validation or whose hex mesh
         is not valid, try the classical chain (``auto`` always does)
-    n_sample, n_polycube, n_register, target_hexes, target_size, seed : :class:`PipelineConfig`
+    n_sample, n_polycube, n_learned, n_register, target_hexes, target_size, seed : :class:`PipelineConfig`
     checkpoint, steps, point_budget, device : the model (``polycube="learned"``; budget: condition +
         output points of one generation batch, default ``inference.DEFAULT_POINT_BUDGET``)
     work : stage files and cache records (default ``<out>/.work``)
@@ -130,7 +131,7 @@ def mesh_library(
         raise ValueError(f"unknown polycube source {polycube!r}; expected auto, learned, oracle, classical or voxel")
     if polycube == "auto":
         polycube, fallback = "learned", True
-    config = PipelineConfig(n_sample=n_sample, n_polycube=n_polycube, n_register=n_register,
+    config = PipelineConfig(n_sample=n_sample, n_polycube=n_polycube, n_learned=n_learned, n_register=n_register,
                             target_hexes=target_hexes, target_size=target_size, seed=seed)
     swept = library.sweep_partials(out_p, work_p, before=time.time())
     if swept:
@@ -222,15 +223,15 @@ def mesh_library(
         from polycubenet import inference
 
         budget = point_budget or inference.DEFAULT_POINT_BUDGET
-        if not final and len(gen_pool) * (config.n_sample + config.n_polycube) < budget:
+        if not final and len(gen_pool) * (config.n_sample + config.n_learned) < budget:
             return
-        batches = inference.plan_batches([config.n_sample] * len(gen_pool), [config.n_polycube] * len(gen_pool),
+        batches = inference.plan_batches([config.n_sample] * len(gen_pool), [config.n_learned] * len(gen_pool),
                                          budget)
         annotate = gpu_workers(runner) > 0
         for i, idx in enumerate(batches):
             members = [gen_pool[j] for j in idx]
             kw = dict(loaded=[m.records["load_sample"]["path"] for m in members],
-                      dests=[path_of(m, "polycube") for m in members], n_out=[config.n_polycube] * len(members),
+                      dests=[path_of(m, "polycube") for m in members], n_out=[config.n_learned] * len(members),
                       key="+".join(m.keys["polycube"] for m in members), checkpoint=checkpoint, steps=steps,
                       seed=seed, device=device, point_budget=budget,
                       name=f"{members[0].name}+{len(members) - 1}")

@@ -205,7 +205,7 @@ def generate(
 class ModelSource:
     """The learned polycube source for :func:`polycubenet.pipeline.mesh_part`.
 
-    ``source(sample, V, F, config)`` generates ``config.n_polycube`` points conditioned on the
+    ``source(sample, V, F, config)`` generates ``config.n_learned`` points conditioned on the
     part's sample and returns a :class:`PolycubeCloud` with ``meta["provenance"] == "learned"``.
     """
 
@@ -217,8 +217,9 @@ class ModelSource:
         loaded = load_model(self.model, self.device)
         t0 = time.perf_counter()
         seed = self.seed + config.seed
-        anchors = [part_anchors(V, F, config.n_polycube, seed)] if loaded.model.config.anchored else None
-        (cloud,) = generate([sample.points], config.n_polycube, model=loaded, steps=self.steps,
+        n = int(getattr(config, "n_learned", None) or config.n_polycube)
+        anchors = [part_anchors(V, F, n, seed)] if loaded.model.config.anchored else None
+        (cloud,) = generate([sample.points], n, model=loaded, steps=self.steps,
                             seed=seed, device=self.device, anchors=anchors)
         meta = {
             "provenance": "learned",

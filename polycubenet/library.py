@@ -156,7 +156,8 @@ def stage_params(config: PipelineConfig, *, polycube: str = "oracle", polycube_e
     re-runs partition and later, never sampling or generation)."""
     return {
         "load_sample": {"n_sample": config.n_sample, "seed": config.seed, "load": dict(load_kw or {})},
-        "polycube": {"source": polycube, "n_polycube": config.n_polycube, "seed": config.seed, "extra": polycube_extra},
+        "polycube": {"source": polycube, "seed": config.seed, "extra": polycube_extra,
+                     "n_points": config.n_learned if polycube == "learned" else config.n_polycube},
         "extract": {"extract": config.extract},
         "register": {"n_register": config.n_register, "seed": config.seed},
         "pullback": {"target_hexes": config.target_hexes, "target_size": config.target_size, "pullback": config.pullback},

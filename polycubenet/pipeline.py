@@ -76,7 +76,9 @@ class PipelineConfig:
     Attributes
     ----------
     n_sample : points on the part (the model's condition and the registration target)
-    n_polycube : points of the polycube cloud (the model's output resolution)
+    n_polycube : points of the classical and voxel polycube clouds
+    n_learned : points the model generates for the learned polycube (its cost is linear in
+        them; 4096 resolve the structure of CAD-like parts, see benchmarks/bench_learned_cost.py)
     n_register : polycube points used by CPD (a random subset; the field is evaluable anywhere)
     target_hexes : approximate hex count (``target_size`` wins when set)
     target_size : element edge length relative to the part's bounding-box diagonal
@@ -88,6 +90,7 @@ class PipelineConfig:
 
     n_sample: int = 4096
     n_polycube: int = 16384
+    n_learned: int = 4096
     n_register: int = 4096
     target_hexes: int | None = 5000
     target_size: float | None = None

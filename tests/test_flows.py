@@ -35,7 +35,7 @@ from polycubenet.pipeline import PipelineConfig  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 GOOD = (9005, 9004)  # held-out synthetic seeds: genus 1 and 2, quick to mesh
-SMALL = dict(n_sample=2048, n_polycube=4096, n_register=1000, target_hexes=600)
+SMALL = dict(n_sample=2048, n_polycube=4096, n_learned=2048, n_register=1000, target_hexes=600)
 STAGE_FNS = ("load_sample", "polycube_cloud", "cleanup_extract", "register", "partition_pullback", "report_export")
 
 
@@ -348,7 +348,8 @@ def test_sigkill_mid_batch_then_rerun(prefect_harness, part_lib, tmp_path, monke
                             stderr=subprocess.DEVNULL)
     try:
         deadline = time.time() + 240
-        while time.time() < deadline and proc.poll() is None and not list(out.glob("*/result.json")):
+        # killed once the first part has finished (the manifest is rewritten as each part finishes)
+        while time.time() < deadline and proc.poll() is None and not (out / "manifest.json").exists():
             time.sleep(0.1)
         assert proc.poll() is None, "the batch finished (or died) before it could be killed"
         os.kill(proc.pid, signal.SIGKILL)
@@ -492,7 +493,7 @@ def test_learned_batches_then_classical_fallback(prefect_harness, part_lib, tiny
     the wiring, not the constructions."""
     _fake_sources(monkeypatch)
     out = tmp_path / "out"
-    budget = SMALL["n_sample"] + SMALL["n_polycube"]  # one part per generation batch
+    budget = SMALL["n_sample"] + SMALL["n_learned"]  # one part per generation batch
     # "auto" is learned with the classical fallback, whatever ``fallback`` says
     state, res = _mesh([part_lib / f"synth-{GOOD[0]}.stl", part_lib / "wrong_genus.obj"], out, polycube="auto",
                        fallback=False, checkpoint=str(tiny_checkpoint), steps=2, point_budget=budget)
@@ -507,7 +508,7 @@ def test_learned_batches_then_classical_fallback(prefect_harness, part_lib, tiny
     work = out / ".work"
     learned = [library.PolycubeCloud.load(p) for p in work.rglob("polycube-*.npz")
                if library.PolycubeCloud.load(p).meta.get("provenance") == "learned"]
-    assert len(learned) == 2 and all(c.points.shape == (SMALL["n_polycube"], 3) for c in learned)
+    assert len(learned) == 2 and all(c.points.shape == (SMALL["n_learned"], 3) for c in learned)
 
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId

@@ -1,0 +1,79 @@
+"""What ``--polycube auto`` costs over ``--polycube classical``, and what the learned attempt costs.
+
+    python benchmarks/bench_auto_cost.py [--parts examples/parts] [--hexes 3000] \\
+        [--json benchmarks/results/bench_auto_cost.json]
+
+Runs the CLI twice on the same folder, each into a fresh output and work folder (nothing
+cached), in this order: ``--polycube classical`` then ``--polycube auto`` (the shipped
+checkpoint, default steps and learned points), and reports the wall time of each, the
+ratio auto / classical (target <= 1.3), and from the manifests: per part, which polycube
+was kept and the seconds that went to rejected polycubes (the learned attempt when it
+was rejected).  The same machine and the same run: the ratio is what to compare.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_cli(mode: str, parts: str, hexes: int, extra: list[str]) -> tuple[float, dict]:
+    out = Path(tempfile.mkdtemp(prefix=f"auto-cost-{mode}-"))
+    cmd = [str(ROOT / ".venv/bin/polycubenet"), "mesh", parts, "-o", str(out / "out"), "--work", str(out / "work"),
+           "--polycube", mode, "--hexes", str(hexes), "--formats", "vtu"] + extra
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, env={**os.environ})
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        print(proc.stdout[-3000:], proc.stderr[-3000:])
+        raise SystemExit(f"{mode}: exit {proc.returncode}")
+    return wall, json.loads((out / "out" / "manifest.json").read_text())
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--parts", default=str(ROOT / "examples/parts"))
+    ap.add_argument("--hexes", type=int, default=3000)
+    ap.add_argument("--extra", nargs="*", default=["--polycube-points", "8192"],
+                    help="more CLI flags for both runs (default: those of make demo)")
+    ap.add_argument("--json", default=str(ROOT / "benchmarks/results/bench_auto_cost.json"))
+    args = ap.parse_args(argv)
+    res = {}
+    for mode in ("classical", "auto"):
+        wall, m = run_cli(mode, args.parts, args.hexes, args.extra)
+        rows = m["parts"]
+        res[mode] = {"wall_s": round(wall, 1), "meshed": sum(r["status"] == "meshed" for r in rows),
+                     "valid": sum(bool((r.get("quality") or {}).get("valid")) for r in rows),
+                     "rejected_polycube_s": m["last_run"].get("rejected_polycube_seconds"),
+                     "rows": [{"name": r["name"], "status": r["status"], "provenance": r.get("provenance"),
+                               "sj_min": (r.get("quality") or {}).get("sj_min"),
+                               "rejected_s": round(sum(v for k, v in r["timings"].items() if k.startswith("rejected_")), 2),
+                               "fallback": r.get("fallback")} for r in rows]}
+        print(f"{mode:>9}: {wall:7.1f} s wall, {res[mode]['meshed']} meshed, {res[mode]['valid']} valid, "
+              f"{res[mode]['rejected_polycube_s'] or 0:.1f} s of stage time on rejected polycubes", flush=True)
+    ratio = res["auto"]["wall_s"] / res["classical"]["wall_s"]
+    learned = sum(r["provenance"] == "learned" for r in res["auto"]["rows"])
+    print(f"\nauto / classical wall time: {ratio:.2f} (target <= 1.3); parts meshed through the learned polycube: "
+          f"{learned}/{len(res['auto']['rows'])}")
+    print(f"\n{'part':<20} {'auto polycube':<14} {'auto SJmin':>10} {'classical SJmin':>15} {'rejected s':>10}")
+    cl = {r["name"]: r for r in res["classical"]["rows"]}
+    for r in res["auto"]["rows"]:
+        c = cl.get(r["name"], {})
+        print(f"{r['name']:<20} {str(r['provenance']):<14} {r['sj_min'] or float('nan'):>10.3f} "
+              f"{c.get('sj_min') or float('nan'):>15.3f} {r['rejected_s']:>10.1f}")
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps({"ratio": ratio, "learned": learned, "hexes": args.hexes,
+                                           "cpus": os.cpu_count(), **res}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
