@@ -37,6 +37,7 @@ ROWS: dict[str, list[str]] = {
     "batch24": ["--batch", "24"],
     # anchored points (ModelConfig.anchored): each generated point is a part point moved onto the polycube
     "anchored": ["--preset", "cpu-anchored"],
+    "anchored_v": ["--preset", "cpu-anchored", "--prediction", "v", "--schedule", "cosine_ztsnr"],
 }
 
 

@@ -8,7 +8,8 @@ shape's samples and measure
 
 * Chamfer distance to the ground-truth polycube samples (mean of the two directed mean
   nearest-neighbour distances; the canonical frame has diagonal 1, so it reads as a
-  fraction of the diagonal);
+  fraction of the diagonal), beside the trivial reference of the part's own samples taken
+  as the polycube cloud (``chamfer_identity``: a model must beat it to have learned anything);
 * structure: the outlier filter and :func:`polycubenet.structure.extract` on the
   generated cloud, compared with the ground-truth grid and occupancy (exact match of
   the minimal grid topology and occupancy, planes within a tolerance) and its genus
@@ -124,7 +125,9 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
             if len(rows) < keep_clouds:
                 kept.append((c, cloud, np.hstack([truth, np.asarray(s["target_normals"][k], float)])))
             row = {"seed": int(s["seeds"][k]), "genus": int(s["genus"][k]),
-                   "chamfer": chamfer(cloud[:, :3].astype(float), truth), "gen_seconds": round(t_gen, 3)}
+                   "chamfer": chamfer(cloud[:, :3].astype(float), truth), "gen_seconds": round(t_gen, 3),
+                   # the trivial reference: the part's own samples taken as the polycube cloud
+                   "chamfer_identity": chamfer(np.asarray(c, float), truth)}
             if structure:
                 gt = s.polycube(k)
                 try:
@@ -154,6 +157,7 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
         "chamfer_mean": float(ch.mean()),
         "chamfer_median": float(np.median(ch)),
         "chamfer_p90": float(np.quantile(ch, 0.9)),
+        "chamfer_identity_median": float(np.median([r["chamfer_identity"] for r in rows])),
         "gen_seconds_per_pair": float(np.mean([r["gen_seconds"] for r in rows])),
     }
     if structure:

@@ -58,12 +58,21 @@ def load_model(checkpoint: str | Path | Loaded | None = None, device: str | None
     return _CACHE[key]
 
 
-def resolve_steps(steps: int | None, device: str | None) -> tuple[str, int | str]:
-    """``(device type, DDIM steps)`` that :func:`generate` will use for these arguments."""
+def resolve_steps(steps: int | None, device: str | None, model: str | Path | Loaded | None = None) -> tuple[str, int | str]:
+    """``(device type, DDIM steps)`` that :func:`generate` will use for these arguments.
+
+    Without ``steps`` on a CPU: the checkpoint's own ``default_steps`` (chosen by measurement
+    when it was published), else :data:`DEFAULT_STEPS_CPU`; on CUDA stride 4."""
     dev_type = torch.device(device or default_device()).type
     if steps is not None:
         return dev_type, int(steps)
-    return dev_type, DEFAULT_STEPS_CPU if dev_type == "cpu" else "stride4"
+    if dev_type != "cpu":
+        return dev_type, "stride4"
+    try:
+        meta = load_model(model, "cpu").meta
+    except (FileNotFoundError, ValueError):
+        meta = {}
+    return dev_type, int(meta.get("default_steps") or DEFAULT_STEPS_CPU)
 
 
 def request_seed(seed: int, condition: np.ndarray) -> int:
@@ -154,7 +163,8 @@ def generate(
     ----------
     n_out : output points per request (one int for all, or one per request)
     model : checkpoint path or loaded model (default: the shipped checkpoint)
-    steps : DDIM steps (default: stride 4 on CUDA, :data:`DEFAULT_STEPS_CPU` on a CPU)
+    steps : DDIM steps (default: stride 4 on CUDA; on a CPU the checkpoint's ``default_steps``,
+        else :data:`DEFAULT_STEPS_CPU`)
     stride : DDIM stride when ``steps`` is None on CUDA
     eta : 0 = deterministic DDIM, 1 = DDPM-like ancestral noise
     seed : request ``i`` uses generator seed ``request_seed(seed, conditions[i])``
@@ -179,7 +189,7 @@ def generate(
     if any(n < 1 for n in outs):
         raise ValueError("every n_out must be >= 1")
     if steps is None and torch.device(device).type == "cpu":
-        steps = DEFAULT_STEPS_CPU
+        steps = int(loaded.meta.get("default_steps") or DEFAULT_STEPS_CPU)
     anch = None
     if loaded.model.config.anchored:
         if anchors is None or len(anchors) != len(conds):
@@ -224,7 +234,7 @@ class ModelSource:
         meta = {
             "provenance": "learned",
             "checkpoint": str(loaded.path.name if loaded.path else "memory"),
-            "steps": self.steps if self.steps is not None else (DEFAULT_STEPS_CPU if (self.device or default_device()) == "cpu" else "stride4"),
+            "steps": resolve_steps(self.steps, self.device, loaded)[1],
             "seconds": round(time.perf_counter() - t0, 3),
         }
         return PolycubeCloud(cloud[:, :3].astype(np.float64), cloud[:, 3:].astype(np.float64), meta=meta)

@@ -294,7 +294,7 @@ def source_extra(kind: str, part_path: str | os.PathLike, checkpoint: str | os.P
     if kind == "learned":
         from .inference import resolve_steps
 
-        dev_type, used = resolve_steps(steps, device)
+        dev_type, used = resolve_steps(steps, device, checkpoint)
         return {"checkpoint": file_hash(checkpoint) if checkpoint and Path(checkpoint).is_file() else str(checkpoint),
                 "steps": used, "device": dev_type}
     if kind == "classical" and classical_available():

@@ -160,7 +160,7 @@ def test_a_missing_checkpoint_is_reported(tmp_path):
 
 # ----------------------------------------------------------------------------- pipeline source
 def test_model_source_returns_a_learned_cloud(ckpt):
-    config = PipelineConfig(n_polycube=70, seed=4)
+    config = PipelineConfig(n_learned=70, seed=4)  # the model generates n_learned points (not n_polycube)
     sample = types.SimpleNamespace(points=_cloud(90, 30).astype(np.float64))
     src = ModelSource(ckpt, steps=STEPS, seed=2, device="cpu")
     cloud = src(sample, None, None, config)
@@ -211,3 +211,24 @@ def test_an_anchored_model_moves_each_anchor_a_bounded_step(anchored_ckpt):
     np.testing.assert_allclose(alone, out[2], atol=1e-5)
     with pytest.raises(ValueError, match="anchors 0"):
         generate(conds[:1], 50, model=loaded, steps=STEPS, device="cpu", anchors=[anchors[0][:10]])
+
+
+def test_a_checkpoints_own_default_steps_are_used_on_cpu(tmp_path):
+    """The number of DDIM steps chosen when a checkpoint was published is its default on a CPU
+    (and is what the cache key records)."""
+    from polycubenet.inference import resolve_steps
+
+    torch.manual_seed(0)
+    net = PolycubeNet(preset("tiny"))
+    with torch.no_grad():
+        torch.nn.init.normal_(net.denoiser.out.weight, std=0.2)
+    path = save_checkpoint(tmp_path / "two.pt", {"kind": "published", "model_config": net.config.to_dict(),
+                                                 "diffusion": Diffusion().to_dict(), "ema": net.state_dict(),
+                                                 "default_steps": 2})
+    cond = [_cloud(80, 5)]
+    (a,) = generate(cond, 40, model=path, device="cpu")
+    (b,) = generate(cond, 40, model=path, steps=2, device="cpu")
+    (c,) = generate(cond, 40, model=path, steps=5, device="cpu")
+    np.testing.assert_array_equal(a, b)
+    assert np.abs(a - c).max() > 1e-4
+    assert resolve_steps(None, "cpu", path) == ("cpu", 2) and resolve_steps(7, "cpu", path) == ("cpu", 7)
