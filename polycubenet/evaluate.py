@@ -56,6 +56,7 @@ REJECTION_CATEGORIES = (
     ("cloud far from its polycube", ("far from",)),
     ("surface not covered", ("covers only",)),
     ("too few points", ("too few points",)),
+    ("no occupied cell", ("empty occ",)),
 )
 
 

@@ -24,7 +24,8 @@ RECIPE=$("$PY" - "$CKPT" <<'EOF'
 import sys, torch
 s = torch.load(sys.argv[1], map_location="cpu", weights_only=False)
 d, tc = s.get("diffusion") or {}, s.get("train_config") or {}
-flags = ["--prediction", d.get("prediction", "eps"), "--schedule", d.get("schedule", "cosine"),
+flags = ["--preset", tc.get("preset", "cpu"),
+         "--prediction", d.get("prediction", "eps"), "--schedule", d.get("schedule", "cosine"),
          "--pairing", d.get("pairing", "random"), "--min-snr", str(d.get("min_snr") or 0),
          "--points", str(tc.get("points", 512)), "--batch", str(tc.get("batch", 12))]
 print(" ".join(flags))
@@ -33,7 +34,7 @@ EOF
 setsid nohup bash -c "
   $PY -m polycubenet.synth --out $DATA/heldout --count 256 --seed 2 --n-cond 2048 --n-target 2048 --workers 2 --no-progress &&
   $PY -m polycubenet.synth --out $DATA/train --count 4096 --seed 1 --n-cond 2048 --n-target 2048 --workers 2 --no-progress &&
-  $PY -m polycubenet.train --data $DATA/train --eval-data $DATA/heldout --out $RUN --preset cpu --init $CKPT \
+  $PY -m polycubenet.train --data $DATA/train --eval-data $DATA/heldout --out $RUN --init $CKPT \
       $RECIPE --steps 1000000 --lr 3e-4 --min-lr-ratio 1.0 --warmup 50 --threads $THREADS \
       --ckpt-every 100 --log-every 50 --no-progress --max-minutes $MINUTES
 " > "$RUN/train.out" 2>&1 &
