@@ -38,7 +38,9 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--formats", default="vtu", help="comma-separated: vtu,vtk,mesh,inp,msh,bdf (default vtu)")
         size = p.add_mutually_exclusive_group()
         size.add_argument("--size", type=float, default=None, help="element size, relative to the part's diagonal")
-        size.add_argument("--hexes", type=int, default=None, help="approximate hexes per part (default 5000)")
+        size.add_argument("--hexes", type=int, default=None,
+                          help="approximate hexes of each part's polycube partition (default 5000); the pillow "
+                               "layer adds one hex per boundary quad on top of it")
         p.add_argument("--polycube", choices=("auto", "learned", "classical", "voxel", "oracle"), default="auto",
                        help="auto (default): the model's polycube, the classical chain where it fails validation or "
                             "gives an invalid mesh; learned: the model's only; classical: built from the surface, "
