@@ -1,0 +1,87 @@
+"""The fallback policy on its own (polycubenet/policy.py): order, what leaves a source, what is kept, and
+the seconds of the sources left.  The drivers (pipeline, flow) are tested with real stages elsewhere."""
+
+from __future__ import annotations
+
+import pytest
+
+from polycubenet.errors import PartError, PolycubeError
+from polycubenet.policy import Attempt, run_chain, source_names
+
+
+def _scripted(script: dict):
+    """``attempt`` whose outcome per source is ``script[source]``: an exception (raised at the stage in
+    its ``stage`` attribute, after 1 s of that stage) or a quality dict."""
+    calls = []
+
+    def attempt(src, tracker):
+        calls.append(src)
+        outcome = script[src]
+        tracker.seconds["polycube"] = 1.0
+        if isinstance(outcome, BaseException):
+            tracker.stage = getattr(outcome, "at", "polycube")
+            tracker.seconds[tracker.stage] = tracker.seconds.get(tracker.stage, 0.0) + 1.0
+            raise outcome
+        tracker.seconds["pullback"] = 2.0
+        return Attempt(src, outcome, payload=src, seconds=dict(tracker.seconds))
+
+    return attempt, calls
+
+
+def _at(exc, stage):
+    exc.at = stage
+    return exc
+
+
+def test_source_order():
+    assert source_names("auto") == ["learned", "classical", "voxel"]
+    assert source_names("classical") == ["classical", "voxel"] and source_names("voxel") == ["voxel"]
+    assert source_names("learned") == ["learned"] and source_names("oracle", fallback=True)[1:] == ["classical", "voxel"]
+
+
+def test_first_valid_mesh_is_kept_and_later_sources_are_not_tried():
+    attempt, calls = _scripted({"learned": {"valid": True, "sj_min": 0.3}, "classical": {"valid": True}})
+    out = run_chain(["learned", "classical", "voxel"], attempt)
+    assert calls == ["learned"] and out.chosen.source == "learned" and out.fallback_reason is None
+    assert out.rejected_seconds == {}
+
+
+def test_any_error_of_the_learned_attempt_falls_back_but_a_classical_bug_does_not():
+    attempt, calls = _scripted({"learned": _at(RuntimeError("CUDA error"), "register"),
+                                "classical": _at(KeyError("bug"), "pullback"), "voxel": {"valid": True}})
+    with pytest.raises(KeyError) as err:
+        run_chain(["learned", "classical", "voxel"], attempt)
+    assert calls == ["learned", "classical"]
+    assert err.value.stage == "pullback" and err.value.source == "classical"
+    assert err.value.fallback_reason == "learned polycube rejected at register: RuntimeError: CUDA error"
+
+
+def test_a_bad_part_is_final():
+    attempt, calls = _scripted({"learned": PartError("p.stl", "open boundary"), "classical": {"valid": True}})
+    with pytest.raises(PartError):
+        run_chain(["learned", "classical"], attempt)
+    assert calls == ["learned"]
+
+
+def test_rejected_polycubes_then_the_best_invalid_mesh_with_every_reason_and_their_seconds():
+    attempt, calls = _scripted({"learned": _at(PolycubeError("genus 0 differs from 2"), "extract"),
+                                "classical": {"valid": False, "sj_min": -0.1},
+                                "voxel": {"valid": False, "sj_min": -0.4}})
+    out = run_chain(["learned", "classical", "voxel"], attempt)
+    assert calls == ["learned", "classical", "voxel"]
+    assert out.chosen.source == "classical"  # the higher minimum scaled Jacobian
+    assert out.reasons == [
+        "learned polycube rejected at extract: genus 0 differs from 2",
+        "pullback: the classical polycube's hex mesh is not valid (minimum scaled Jacobian -0.100)",
+        "pullback: the voxel polycube's hex mesh is not valid (minimum scaled Jacobian -0.400)",
+        "no polycube gave a valid mesh: kept the classical one's (the highest minimum scaled Jacobian)",
+    ]
+    # left: the learned attempt (1 s polycube + 1 s extract) and the voxel one (1 + 2); the kept one is not counted
+    assert out.rejected_seconds == {"polycube": 2.0, "extract": 1.0, "pullback": 2.0}
+
+
+def test_when_every_source_is_rejected_the_last_error_is_returned_with_the_earlier_reasons():
+    attempt, _ = _scripted({"learned": PolycubeError("no usable cloud"), "voxel": PolycubeError("no resolution")})
+    out = run_chain(["learned", "voxel"], attempt)
+    assert out.chosen is None and out.error_source == "voxel" and "no resolution" in str(out.error)
+    assert out.reasons == ["learned polycube rejected at polycube: no usable cloud"]
