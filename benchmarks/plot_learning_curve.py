@@ -1,0 +1,69 @@
+"""The shipped model's learning curve across sessions: cumulative CPU-hours -> held-out metrics.
+
+    python benchmarks/plot_learning_curve.py [--curve benchmarks/results/learning_curve.jsonl] \\
+        [--out docs/learning_curve.png]
+
+Reads the points ``scripts/publish_checkpoint.sh`` appends (one per published checkpoint; a point
+without ``cpu_hours`` is session 1's, 1.4 h), prints them as a table and plots the held-out median
+Chamfer (with the identity reference: the part's own samples as the cloud), the genus-match rate for
+pairs of genus <= 2 and the example parts accepted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SESSION1_CPU_HOURS = 1.4  # recorded in MODEL_CARD.md; that checkpoint predates the cpu_hours field
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--curve", default=str(ROOT / "benchmarks/results/learning_curve.jsonl"))
+    ap.add_argument("--out", default=str(ROOT / "docs/learning_curve.png"))
+    args = ap.parse_args(argv)
+    pts = [json.loads(line) for line in Path(args.curve).read_text().splitlines() if line.strip()]
+    for p in pts:
+        p["cpu_hours"] = p.get("cpu_hours") or SESSION1_CPU_HOURS
+    pts.sort(key=lambda p: p["cpu_hours"])
+    print(f"{'CPU-h':>6} {'recipe':<26} {'steps':>5} {'Chamfer':>8} {'identity':>8} {'exact':>6} {'genus<=2':>8} {'parts':>6}")
+    for p in pts:
+        d = p.get("diffusion") or {}
+        recipe = f"{d.get('prediction', 'eps')}/{d.get('schedule', 'cosine')}" + ("/anch" if p.get("anchored") else "")
+        print(f"{p['cpu_hours']:>6.2f} {recipe:<26} {p['steps']:>5} {p['chamfer_median']:>8.4f} "
+              f"{p.get('chamfer_identity') or float('nan'):>8.4f} {p['exact']:>6.0%} "
+              f"{(p.get('genus_match_genus_le2') or 0):>8.0%} {p['parts_accepted']:>3}/{p['parts']}")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = [p["cpu_hours"] for p in pts]
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.2))
+    ax[0].plot(x, [p["chamfer_median"] for p in pts], "o-", label="model")
+    ident = [p.get("chamfer_identity") for p in pts]
+    if any(v is not None for v in ident):
+        ax[0].plot([xi for xi, v in zip(x, ident) if v is not None], [v for v in ident if v is not None], "k--",
+                   label="identity (part samples)")
+    ax[0].axhline(0.015, color="g", lw=0.8, label="target 1.5 %")
+    ax[0].set_xlabel("cumulative CPU-hours")
+    ax[0].set_ylabel("held-out Chamfer (median, diag.)")
+    ax[0].legend(fontsize=7)
+    ax[1].plot(x, [p["exact"] for p in pts], "o-", label="exact structure")
+    ax[1].plot(x, [p.get("genus_match_genus_le2") or 0 for p in pts], "s-", label="genus match (genus <= 2)")
+    ax[1].plot(x, [p["parts_accepted"] / max(1, p["parts"]) for p in pts], "^-", label="example parts accepted")
+    ax[1].set_ylim(-0.05, 1.05)
+    ax[1].set_xlabel("cumulative CPU-hours")
+    ax[1].legend(fontsize=7)
+    fig.tight_layout()
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out, dpi=90)
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
