@@ -189,7 +189,7 @@ def generate(
     if any(n < 1 for n in outs):
         raise ValueError("every n_out must be >= 1")
     if steps is None and torch.device(device).type == "cpu":
-        steps = int(loaded.meta.get("default_steps") or DEFAULT_STEPS_CPU)
+        steps = resolve_steps(None, device, loaded)[1]
     anch = None
     if loaded.model.config.anchored:
         if anchors is None or len(anchors) != len(conds):
