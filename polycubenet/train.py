@@ -274,7 +274,6 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
         net = DistributedDataParallel(model, device_ids=[dev.index] if dev.type == "cuda" else None)
     autocast = (lambda: torch.autocast("cuda", dtype=torch.bfloat16)) if dev.type == "cuda" else None
     per_rank = max(1, cfg.batch // world)
-    scale = mcfg.xyz_scale
     if rank == 0:
         print(f"[train] {count_parameters(model):,} parameters, preset {cfg.preset}, {len(data)} pairs, "
               f"{world} process(es) on {dev}, batch {per_rank * world} x {cfg.points} points, from step {step}",
