@@ -38,6 +38,8 @@ ROWS: dict[str, list[str]] = {
     # anchored points (ModelConfig.anchored): each generated point is a part point moved onto the polycube
     "anchored": ["--preset", "cpu-anchored"],
     "anchored_v": ["--preset", "cpu-anchored", "--prediction", "v", "--schedule", "cosine_ztsnr"],
+    # anchors that carry the part's normal (ModelConfig.anchor_normals)
+    "anchored_vn": ["--preset", "cpu-anchored-normals", "--prediction", "v", "--schedule", "cosine_ztsnr"],
 }
 
 
@@ -76,7 +78,8 @@ def run_row(name: str, args) -> dict:
         "row": name, "flags": extra, "steps": int(ck["step"]), "cpu_minutes": round(args.cpu_minutes, 1),
         "train_wall_s": round(train_wall, 1), "chamfer_median": ev["chamfer_median"],
         "exact": ev["exact_structure_rate"], "genus_match": ev["genus_match_rate"],
-        "refused": ev["extract_failed_rate"],
+        "refused": ev["extract_failed_rate"], "label_accuracy": ev.get("label_accuracy_median"),
+        "label_accuracy_part_normals": ev.get("label_accuracy_part_normals_median"), "n_generated": ev.get("n_generated"),
         "exact_genus_le2": sum(r["exact"] for r in low) / max(1, len(low)),
         "genus_match_le2": sum(r["genus_match"] for r in low) / max(1, len(low)),
         "pairs": ev["pairs"], "eval": str(ev_json),
@@ -118,11 +121,15 @@ def main(argv=None) -> int:
         rows = list(ex.map(lambda r: run_row(r, args), args.rows))
     identity = identity_chamfer(args.heldout, args.count)
     print(f"{'row':<10} {'CPU min':>7} {'steps':>6} {'Chamfer':>8} {'exact':>6} {'genus':>6} {'refused':>7} "
-          f"{'exact g<=2':>10} {'genus g<=2':>10}")
+          f"{'exact g<=2':>10} {'genus g<=2':>10} {'labels':>6}")
     for r in rows:
         print(f"{r['row']:<10} {r['cpu_minutes']:>7.1f} {r['steps']:>6} {r['chamfer_median']:>8.4f} {r['exact']:>6.2f} "
-              f"{r['genus_match']:>6.2f} {r['refused']:>7.2f} {r['exact_genus_le2']:>10.2f} {r['genus_match_le2']:>10.2f}")
+              f"{r['genus_match']:>6.2f} {r['refused']:>7.2f} {r['exact_genus_le2']:>10.2f} {r['genus_match_le2']:>10.2f} "
+              f"{r['label_accuracy'] if r['label_accuracy'] is not None else float('nan'):>6.3f}")
     print(f"{'identity':<10} {'':>7} {'':>6} {identity:>8.4f}   (the part's own samples as the polycube cloud)")
+    snap = rows[0].get("label_accuracy_part_normals")
+    if snap is not None:
+        print(f"labels: fraction of generated normals on the right axis and sign; the part's own normals snapped: {snap:.3f}")
     from polycubenet.atomic import write_json
 
     write_json(args.json, {"settings": {k: v for k, v in vars(args).items()}, "rows": rows,

@@ -180,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         if a.command == "mesh":
-            parts = library.discover(a.inputs)
+            parts = library.discover(a.inputs, exclude=[a.out])
             if not parts:
                 print(f"polycubenet: no parts found under {a.inputs}", file=sys.stderr)
                 return EXIT_USAGE

@@ -143,7 +143,7 @@ def mesh_library(
         checkpoint = str(DEFAULT_CHECKPOINT)
     if polycube == "learned" and not Path(checkpoint).is_file():
         raise FileNotFoundError(f"model checkpoint {checkpoint} not found: pass checkpoint=..., or polycube='classical'")
-    paths = library.discover(inputs)
+    paths = library.discover(inputs, exclude=[out_p, work_p])
     hashes = [library.file_hash(p) for p in paths]
     names = library.part_names(paths, hashes)
     sources = source_names(polycube, fallback, classical=library.classical_available())

@@ -22,7 +22,7 @@ def changed_parts(drop: list[str] | str, out: str) -> tuple[list[str], list[str]
     drops = [drop] if isinstance(drop, str) else list(drop)
     known = {r["path"]: r.get("hash") for r in library.read_manifest(out)["parts"]}
     new, changed = [], []
-    for p in library.discover(drops):
+    for p in library.discover(drops, exclude=[out]):
         if str(p) not in known:
             new.append(str(p))
         elif library.file_hash(p) != known[str(p)]:

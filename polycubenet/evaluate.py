@@ -60,6 +60,20 @@ REJECTION_CATEGORIES = (
 )
 
 
+def label_accuracy(cloud: np.ndarray, anchors: np.ndarray, on_shape: np.ndarray, truth_normals: np.ndarray) -> float:
+    """Fraction of generated points whose normal has the ground truth's dominant axis and sign, the truth
+    being the target normal of the target point whose part point is nearest the generated point's anchor
+    (an anchored model's output point ``i`` is anchor ``i`` moved onto the polycube)."""
+    from scipy.spatial import cKDTree
+
+    from .structure import axis_labels
+
+    _, j = cKDTree(np.asarray(on_shape, float)).query(np.asarray(anchors, float))
+    ga, gs = axis_labels(np.asarray(cloud[:, 3:6], float), 90.0)
+    ta, ts = axis_labels(np.asarray(truth_normals, float)[j], 90.0)
+    return float(np.mean((ga == ta) & (gs == ts)))
+
+
 def rejection_category(message: str) -> str:
     """The category of a :class:`~polycubenet.errors.PolycubeError` message (``"other"`` when none fits)."""
     m = message.lower()
@@ -113,15 +127,22 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
             conds.append(c)
         tg = time.perf_counter()
         anchors = None
-        if loaded.model.config.anchored:  # the shard has no mesh: the anchors are the part's condition points
+        cfg = loaded.model.config
+        n_gen = n_out
+        if cfg.anchored:
+            # the shard has no mesh: the anchors are the part's condition points (with their normals), each
+            # at most once -- a repeated anchor gives near-duplicate output points, which the extraction
+            # reads as a denser cloud than there is
             anchors = []
+            n_gen = min(n_out, min(len(s["cond_points"][k]) for s, k in chunk))
             for (s, k), c in zip(chunk, conds):
                 cp = np.asarray(s["cond_points"][k], np.float32)
-                pick = np.random.default_rng(k).choice(len(cp), n_out, replace=n_out > len(cp))
-                anchors.append(cp[pick])
-        clouds = generate(conds, n_out, model=loaded, steps=steps, seed=seed + b, device=device, anchors=anchors)
+                if cfg.anchor_normals:
+                    cp = np.hstack([cp, np.asarray(s["cond_normals"][k], np.float32)])
+                anchors.append(cp[np.random.default_rng(k).permutation(len(cp))[:n_gen]])
+        clouds = generate(conds, n_gen, model=loaded, steps=steps, seed=seed + b, device=device, anchors=anchors)
         t_gen = (time.perf_counter() - tg) / len(chunk)
-        for (s, k), cloud, c in zip(chunk, clouds, conds):
+        for i, ((s, k), cloud, c) in enumerate(zip(chunk, clouds, conds)):
             truth = np.asarray(s["target_points"][k], float)
             if len(rows) < keep_clouds:
                 kept.append((c, cloud, np.hstack([truth, np.asarray(s["target_normals"][k], float)])))
@@ -129,6 +150,13 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
                    "chamfer": chamfer(cloud[:, :3].astype(float), truth), "gen_seconds": round(t_gen, 3),
                    # the trivial reference: the part's own samples taken as the polycube cloud
                    "chamfer_identity": chamfer(np.asarray(c, float), truth)}
+            # the trivial reference for labels: the part's own normal at each point, snapped to its axis
+            cp_all = np.asarray(s["cond_points"][k], float)
+            row["label_accuracy_part_normals"] = label_accuracy(np.hstack([cp_all, np.asarray(s["cond_normals"][k], float)]),
+                                                                cp_all, s["target_on_shape"][k], s["target_normals"][k])
+            if anchors is not None:
+                row["label_accuracy"] = label_accuracy(cloud, anchors[i][:, :3], s["target_on_shape"][k],
+                                                       s["target_normals"][k])
             if structure:
                 gt = s.polycube(k)
                 try:
@@ -159,6 +187,7 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
         "chamfer_median": float(np.median(ch)),
         "chamfer_p90": float(np.quantile(ch, 0.9)),
         "chamfer_identity_median": float(np.median([r["chamfer_identity"] for r in rows])),
+        "n_generated": int(len(clouds[0])),
         "gen_seconds_per_pair": float(np.mean([r["gen_seconds"] for r in rows])),
     }
     if structure:
@@ -175,6 +204,9 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
             r["category"] = c = row_category(r)
             cats[c] = cats.get(c, 0) + 1
         out["categories"] = cats
+    out["label_accuracy_part_normals_median"] = float(np.median([r["label_accuracy_part_normals"] for r in rows]))
+    if rows and "label_accuracy" in rows[0]:
+        out["label_accuracy_median"] = float(np.median([r["label_accuracy"] for r in rows]))
     out["rows"] = rows
     if keep_clouds:
         out["clouds"] = kept

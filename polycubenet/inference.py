@@ -107,12 +107,15 @@ def plan_batches(n_in: Sequence[int], n_out: Sequence[int], point_budget: int = 
     return batches
 
 
-def part_anchors(V: np.ndarray, F: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+def part_anchors(V: np.ndarray, F: np.ndarray, n: int, seed: int = 0, normals: bool = False) -> np.ndarray:
     """``(n, 3)`` anchor points for an anchored model: area-uniform samples of the part ``(V, F)``
-    (canonical frame), a function of the part and ``seed`` only."""
+    (canonical frame), a function of the part and ``seed`` only; with ``normals`` ``(n, 6)``: each
+    point and the unit normal of its triangle (for a model with ``anchor_normals``)."""
     from .sampling import uniform_sample
 
-    return uniform_sample(np.asarray(V, float), np.asarray(F), int(n), np.random.default_rng(seed)).points.astype(np.float32)
+    s = uniform_sample(np.asarray(V, float), np.asarray(F), int(n), np.random.default_rng(seed))
+    out = np.hstack([s.points, s.normals]) if normals else s.points
+    return out.astype(np.float32)
 
 
 def _sample_batch(loaded: Loaded, conds: list[np.ndarray], n_out: int, seeds: list[int], *, steps, stride, eta,
@@ -156,8 +159,9 @@ def generate(
     """Polycube clouds for ``conditions`` (each ``(N_i, 3)``, canonical frame).
 
     An anchored model (``ModelConfig.anchored``) also needs ``anchors``: per request the
-    ``(n_out_i, 3)`` points of the part whose places on the polycube it generates
-    (:func:`part_anchors`); each output point is its anchor moved onto the polycube.
+    ``(n_out_i, 3)`` points of the part whose places on the polycube it generates, ``(n_out_i, 6)``
+    with the part's normals for ``anchor_normals`` (:func:`part_anchors`); each output point is
+    its anchor moved onto the polycube.
 
     Parameters
     ----------
@@ -192,13 +196,15 @@ def generate(
         steps = resolve_steps(None, device, loaded)[1]
     anch = None
     if loaded.model.config.anchored:
+        k = loaded.model.config.anchor_dim
+        what = "points" if k == 3 else "points and unit normals"
         if anchors is None or len(anchors) != len(conds):
-            raise ValueError("this model is anchored: pass anchors, one (n_out, 3) array of points on each part "
+            raise ValueError(f"this model is anchored: pass anchors, one (n_out, {k}) array of {what} on each part "
                              "(polycubenet.inference.part_anchors)")
         anch = [np.asarray(a, dtype=np.float32) for a in anchors]
         for i, (a, n) in enumerate(zip(anch, outs)):
-            if a.shape != (n, 3) or not np.isfinite(a).all():
-                raise ValueError(f"anchors {i}: expected a finite ({n}, 3) array, got shape {a.shape}")
+            if a.shape != (n, k) or not np.isfinite(a).all():
+                raise ValueError(f"anchors {i}: expected a finite ({n}, {k}) array of {what}, got shape {a.shape}")
     batches = plan_batches([len(c) for c in conds], outs, point_budget or DEFAULT_POINT_BUDGET)
     results: list[np.ndarray | None] = [None] * len(conds)
     for b, idx in enumerate(batches):
@@ -228,7 +234,8 @@ class ModelSource:
         t0 = time.perf_counter()
         seed = self.seed + config.seed
         n = int(getattr(config, "n_learned", None) or config.n_polycube)
-        anchors = [part_anchors(V, F, n, seed)] if loaded.model.config.anchored else None
+        cfg = loaded.model.config
+        anchors = [part_anchors(V, F, n, seed, normals=cfg.anchor_normals)] if cfg.anchored else None
         (cloud,) = generate([sample.points], n, model=loaded, steps=self.steps,
                             seed=seed, device=self.device, anchors=anchors)
         meta = {

@@ -9,6 +9,11 @@ Input formats
 -------------
 - Mesh files, read by trimesh with ``process=False`` (or by the small readers below):
   ``.stl`` (binary and ASCII), ``.obj``, ``.ply``, ``.off``, ``.glb``.
+- Volume meshes, read by meshio: ``.mesh`` (MEDIT), ``.vtu`` / ``.vtk`` (VTK), ``.msh``
+  (Gmsh).  The part is the boundary of their solid cells (tetrahedra, hexahedra, wedges,
+  pyramids, linear or higher order -- only the corner nodes are used): every cell face that
+  no other cell shares, quads split into two triangles.  A file with no solid cells but
+  triangles or quads is read as a surface.
 - CAD files, read by gmsh's OpenCASCADE kernel and meshed into triangles:
   ``.step`` / ``.stp`` and ``.iges`` / ``.igs``.  OpenCASCADE converts coordinates from the
   unit the file declares to millimetres; ``units`` rescales them to another unit.  gmsh is a
@@ -103,7 +108,15 @@ SUPPORTED_PART_FORMATS: dict[str, str] = {
     ".stp": "step",
     ".iges": "iges",
     ".igs": "iges",
+    # volume meshes: the part is the boundary surface of their solid cells (tets, hexes, ...)
+    ".mesh": "medit",
+    ".vtu": "vtu",
+    ".vtk": "vtk",
+    ".msh": "gmsh",
 }
+
+#: the volume-mesh formats among ``SUPPORTED_PART_FORMATS`` (read through meshio)
+VOLUME_FORMATS = ("medit", "vtu", "vtk", "gmsh")
 
 #: file extension -> meshio format name, for ``write_hex`` / ``read_hex``
 SUPPORTED_HEX_FORMATS: dict[str, str] = {
@@ -169,7 +182,8 @@ def load_part(
     Parameters
     ----------
     path : str or PathLike
-        ``.stl .obj .ply .off .glb`` (mesh files) or ``.step .stp .iges .igs`` (CAD files).
+        ``.stl .obj .ply .off .glb`` (mesh files), ``.mesh .vtu .vtk .msh`` (volume meshes,
+        read as the boundary of their cells) or ``.step .stp .iges .igs`` (CAD files).
     mesh_size : float, optional
         CAD files only: target triangle edge length, in the output ``units`` (mm by
         default).  Default: ``tol.CAD_MESH_SIZE_REL`` (2%) of the bounding-box diagonal,
@@ -237,7 +251,8 @@ def load_part(
         vertices, faces, cad_meta = _read_cad(path, fmt, mesh_size=mesh_size, max_faces=max_faces, unit=unit)
         meta.update(cad_meta)
     else:
-        readers = {"stl": _read_stl, "off": _read_off, "obj": _read_obj, "ply": _read_ply, "glb": _read_glb}
+        readers = {"stl": _read_stl, "off": _read_off, "obj": _read_obj, "ply": _read_ply, "glb": _read_glb,
+                   **{f: _read_volume for f in VOLUME_FORMATS}}
         try:
             vertices, faces = readers[fmt](path, max_faces, repairs)
         except (PartError, MemoryError):
@@ -451,7 +466,7 @@ def write_surface(vertices: np.ndarray, faces: np.ndarray, path: str | os.PathLi
 
     path = Path(path)
     fmt = SUPPORTED_PART_FORMATS.get(path.suffix.lower())
-    if fmt is None or fmt in _CAD_FORMATS:
+    if fmt is None or fmt in _CAD_FORMATS or fmt in VOLUME_FORMATS:
         raise ValueError(f"{path}: cannot write a surface as {path.suffix!r}; use .stl .obj .ply .off or .glb")
     mesh = trimesh.Trimesh(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64), process=False)
     with atomic_path(path) as tmp:
@@ -806,6 +821,97 @@ def _read_glb(path: Path, max_faces: int, repairs: list[str]) -> tuple[np.ndarra
             path, f"truncated or corrupt GLB: the header announces {declared} bytes, the file has {path.stat().st_size}"
         )
     return _trimesh_arrays(path, "glb")
+
+
+#: the faces of each solid cell type (VTK corner order), each listed counter-clockwise seen from
+#: outside a positively oriented cell; triangles and quads of the surface cell types themselves
+_CELL_FACES: dict[str, list[tuple[int, ...]]] = {
+    "tetra": [(0, 2, 1), (0, 1, 3), (1, 2, 3), (0, 3, 2)],
+    "hexahedron": [(0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7)],
+    "wedge": [(0, 2, 1), (3, 4, 5), (0, 1, 4, 3), (1, 2, 5, 4), (2, 0, 3, 5)],
+    "pyramid": [(0, 3, 2, 1), (0, 1, 4), (1, 2, 4), (2, 3, 4), (3, 0, 4)],
+}
+_CELL_CORNERS = {"tetra": 4, "hexahedron": 8, "wedge": 6, "pyramid": 5}
+_SURFACE_CORNERS = {"triangle": 3, "quad": 4}
+
+
+def _cell_kind(name: str) -> tuple[str | None, int]:
+    """``(kind, corners)`` of a meshio cell type name (``tetra10`` -> ``("tetra", 4)``), else ``(None, 0)``."""
+    base = name.rstrip("0123456789")
+    if base in _CELL_CORNERS:
+        return base, _CELL_CORNERS[base]
+    if base in _SURFACE_CORNERS:
+        return base, _SURFACE_CORNERS[base]
+    return None, 0
+
+
+def _read_volume(path: Path, max_faces: int, repairs: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """The boundary triangles of a volume mesh (see the module docstring)."""
+    import meshio
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        m = meshio.read(path, file_format=SUPPORTED_PART_FORMATS[path.suffix.lower()])
+    pts = np.asarray(m.points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] not in (2, 3):
+        raise UnreadableFileError(path, f"points have shape {pts.shape}, expected (n, 3)")
+    if pts.shape[1] == 2:
+        raise UnreadableFileError(path, "a 2-D mesh (points have 2 coordinates) has no solid to mesh")
+    solid_faces: list[np.ndarray] = []
+    surface_faces: list[np.ndarray] = []
+    n_solid = 0
+    skipped: dict[str, int] = {}
+    for block in m.cells:
+        kind, k = _cell_kind(block.type)
+        data = np.asarray(block.data, dtype=np.int64)
+        if kind is None or len(data) == 0:
+            if kind is None and block.type not in ("vertex", "line") and not block.type.startswith("line"):
+                skipped[block.type] = skipped.get(block.type, 0) + len(data)
+            continue
+        corners = data[:, :k]
+        if kind in _CELL_FACES:
+            n_solid += len(corners)
+            # orient each cell positively (a mirrored file lists its cells the other way round)
+            p = pts[corners]
+            if kind == "tetra":
+                vol = np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0])
+            else:  # sign from the centroid: the first face's normal points away from it
+                f0 = _CELL_FACES[kind][0]
+                n0 = np.cross(p[:, f0[1]] - p[:, f0[0]], p[:, f0[2]] - p[:, f0[0]])
+                vol = -np.einsum("ij,ij->i", n0, p.mean(axis=1) - p[:, f0[0]])
+            for face in _CELL_FACES[kind]:
+                f = corners[:, list(face)]
+                f[vol < 0] = f[vol < 0][:, ::-1]
+                solid_faces.append(f if len(face) == 4 else np.pad(f, ((0, 0), (0, 1)), constant_values=-1))
+        else:
+            surface_faces.append(corners if k == 4 else np.pad(corners, ((0, 0), (0, 1)), constant_values=-1))
+    if skipped:
+        repairs.append("ignored cells of unsupported type: " + ", ".join(f"{n} {t}" for t, n in sorted(skipped.items())))
+    if n_solid:
+        faces = np.concatenate(solid_faces)
+        # boundary faces: those whose vertex set occurs once (an interior face is shared by two cells)
+        key = np.sort(faces, axis=1)
+        _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        faces = faces[counts[inverse.ravel()] == 1]
+        what = f"the boundary of {n_solid} solid cells"
+        if surface_faces:
+            repairs.append(f"read {what}; the file's own surface cells were ignored")
+        else:
+            repairs.append(f"read {what}")
+    elif surface_faces:
+        faces = np.concatenate(surface_faces)
+        repairs.append("the file has no solid cells: its triangles/quads were read as the surface")
+    else:
+        raise EmptyMeshError(path, "no solid cells (tetra, hexahedron, wedge, pyramid) and no surface cells in the file")
+    tri = faces[faces[:, 3] < 0][:, :3]
+    quad = faces[faces[:, 3] >= 0]
+    tris = np.concatenate([tri, quad[:, [0, 1, 2]], quad[:, [0, 2, 3]]])
+    _too_large(path, len(tris), max_faces)
+    if tris.size and (tris.max() >= len(pts) or tris.min() < 0):
+        raise UnreadableFileError(path, "a cell refers to a node that does not exist")
+    # interior nodes are expected in a volume mesh: keep the boundary's only, silently
+    used, tris = np.unique(tris, return_inverse=True)
+    return pts[used], tris.reshape(-1, 3)
 
 
 def _trimesh_arrays(path: Path, fmt: str, **kwargs) -> tuple[np.ndarray, np.ndarray]:

@@ -47,7 +47,9 @@ from .pipeline import OracleSource, PartResult, PipelineConfig
 #: part files the library reads (``polycubenet.io.load_part``)
 CAD_SUFFIXES = (".step", ".stp", ".iges", ".igs")
 MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".glb")
-PART_SUFFIXES = CAD_SUFFIXES + MESH_SUFFIXES
+#: volume meshes (tets, hexes, ...): the part is their boundary
+VOLUME_SUFFIXES = (".mesh", ".vtu", ".vtk", ".msh")
+PART_SUFFIXES = CAD_SUFFIXES + MESH_SUFFIXES + VOLUME_SUFFIXES
 #: hex mesh formats ``polycubenet.io.write_hex`` writes
 HEX_FORMATS = ("vtu", "vtk", "mesh", "inp", "msh", "bdf")
 #: the sidecar next to a synthetic part ``X.stl`` holding its ground-truth polycube
@@ -71,33 +73,51 @@ REPORT = "report.html"
 # --------------------------------------------------------------------------- discovery
 
 
-def discover(inputs: Iterable[str | os.PathLike], *, prefer_cad: bool = True) -> list[Path]:
+def discover(inputs: Iterable[str | os.PathLike], *, prefer_cad: bool = True,
+             exclude: Iterable[str | os.PathLike] = ()) -> list[Path]:
     """Part files named by ``inputs``: files, folders (searched recursively) and glob patterns.
 
     Only the suffixes in :data:`PART_SUFFIXES` are kept from folders and globs (a file named
-    explicitly is kept whatever its suffix, so that ``load_part`` reports it).  With
-    ``prefer_cad`` a mesh file whose stem also exists as a STEP/IGES file in the same folder
-    is skipped, so a part exported both ways is meshed once.  Sorted, without duplicates.
-    Raises ``FileNotFoundError`` for an input that is neither a file, a folder nor a
-    pattern that matches something.
+    explicitly is kept whatever its suffix, so that ``load_part`` reports it); nothing under
+    an ``exclude`` folder is kept from a folder or glob (a run's own output folder inside its
+    input: its hex meshes are volume meshes too).  With ``prefer_cad``, when one stem exists in
+    several forms in the same folder only the most exact is meshed: CAD (STEP/IGES), then a
+    surface mesh, then a volume mesh.  Sorted, without duplicates.  Raises
+    ``FileNotFoundError`` for an input that is neither a file, a folder nor a pattern that
+    matches something.
     """
+    skip = [Path(e).resolve() for e in exclude]
+
+    def kept(q: Path) -> bool:
+        if not (q.is_file() and q.suffix.lower() in PART_SUFFIXES):
+            return False
+        r = q.resolve()
+        return not any(r == e or e in r.parents for e in skip)
+
     found: list[Path] = []
     for item in inputs:
         s = str(item)
         p = Path(s)
         if p.is_dir():
-            found += [q for q in sorted(p.rglob("*")) if q.is_file() and q.suffix.lower() in PART_SUFFIXES]
+            found += [q for q in sorted(p.rglob("*")) if kept(q)]
         elif p.is_file():
             found.append(p)
         elif glob.has_magic(s):
             matches = [Path(m) for m in sorted(glob.glob(s, recursive=True))]
-            found += [q for q in matches if q.is_file() and q.suffix.lower() in PART_SUFFIXES]
-            found += [r for q in matches if q.is_dir() for r in discover([q], prefer_cad=False)]
+            found += [q for q in matches if kept(q)]
+            found += [r for q in matches if q.is_dir() for r in discover([q], prefer_cad=False, exclude=skip)]
         else:
             raise FileNotFoundError(f"{s}: no such file, folder or matching pattern")
     if prefer_cad:
-        cad = {(q.parent, q.stem) for q in found if q.suffix.lower() in CAD_SUFFIXES}
-        found = [q for q in found if q.suffix.lower() in CAD_SUFFIXES or (q.parent, q.stem) not in cad]
+        def rank(q: Path) -> int:
+            x = q.suffix.lower()
+            return 0 if x in CAD_SUFFIXES else 2 if x in VOLUME_SUFFIXES else 1
+
+        best: dict = {}
+        for q in found:
+            k = (q.parent, q.stem)
+            best[k] = min(best.get(k, 3), rank(q))
+        found = [q for q in found if rank(q) == best[(q.parent, q.stem)]]
     return sorted(dict.fromkeys(q.resolve() for q in found))
 
 

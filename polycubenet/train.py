@@ -78,7 +78,7 @@ class PairData:
         shards = list_shards(directory)
         if not shards:
             raise FileNotFoundError(f"no shard-*.npz in {directory} (make them with python -m polycubenet.synth)")
-        cond, tp, tn, genus, seeds, tos = [], [], [], [], [], []
+        cond, tp, tn, genus, seeds, tos, cn = [], [], [], [], [], [], []
         n = 0
         for path in shards:
             s = load_shard(path)
@@ -86,6 +86,7 @@ class PairData:
             tp.append(s["target_points"])
             tn.append(s["target_normals"])
             tos.append(s["target_on_shape"])
+            cn.append(s["cond_normals"])
             genus.append(s["genus"])
             seeds.append(s["seeds"])
             n += len(s)
@@ -95,13 +96,15 @@ class PairData:
         self.target_points = np.concatenate(tp)[:limit]
         self.target_normals = np.concatenate(tn)[:limit]
         self.target_on_shape = np.concatenate(tos)[:limit]  # the part's point of each target point
+        self.cond_normals = np.concatenate(cn)[:limit]
+        self._anchor_normals: np.ndarray | None = None
         self.genus = np.concatenate(genus)[:limit]
         self.seeds = np.concatenate(seeds)[:limit]
         if max_genus >= 0:
             keep = self.genus <= max_genus
             if not keep.any():
                 raise ValueError(f"no pair of genus <= {max_genus} in {directory}")
-            for name in ("cond", "target_points", "target_normals", "target_on_shape", "genus", "seeds"):
+            for name in ("cond", "cond_normals", "target_points", "target_normals", "target_on_shape", "genus", "seeds"):
                 setattr(self, name, getattr(self, name)[keep])
         self.directory = Path(directory)
         self.shards = len(shards)
@@ -109,11 +112,26 @@ class PairData:
     def __len__(self) -> int:
         return len(self.cond)
 
+    @property
+    def anchor_normals(self) -> np.ndarray:
+        """The part's unit normal at each target point's part point (``target_on_shape``): the
+        normal of the nearest condition point (computed once, on first use)."""
+        if self._anchor_normals is None:
+            from scipy.spatial import cKDTree
+
+            out = np.empty_like(self.target_on_shape)
+            for i in range(len(self)):
+                _, j = cKDTree(self.cond[i]).query(self.target_on_shape[i])
+                out[i] = self.cond_normals[i][j]
+            self._anchor_normals = out
+        return self._anchor_normals
+
     def batch(self, idx: np.ndarray, points: int, rng: np.random.Generator, cfg: TrainConfig | None = None,
-              anchors: bool = False):
+              anchors: int = 0):
         """``(x0, cond)`` for pairs ``idx`` (target xyz + normals, condition xyz; the canonical frame's
-        units), augmented when ``cfg`` is given; with ``anchors`` also the part point of each target
-        point, ``(x0, cond, anchor)``, augmented alike."""
+        units), augmented when ``cfg`` is given; with ``anchors`` (3, or True: the part point of each
+        target point; 6: that point and the part's normal there) also ``(x0, cond, anchor)``,
+        augmented alike."""
         B = len(idx)
         N, M = self.cond.shape[1], self.target_points.shape[1]
         ci = np.stack([rng.choice(N, size=points, replace=points > N) for _ in range(B)])
@@ -122,9 +140,13 @@ class PairData:
         p = np.take_along_axis(self.target_points[idx], ti[..., None], axis=1).astype(np.float64)
         nrm = np.take_along_axis(self.target_normals[idx], ti[..., None], axis=1).astype(np.float32)
         a = np.take_along_axis(self.target_on_shape[idx], ti[..., None], axis=1).astype(np.float64)
+        an = np.take_along_axis(self.anchor_normals[idx], ti[..., None], axis=1).astype(np.float64) if anchors == 6 else None
         if cfg is not None and cfg.scale_aug > 0:
             s = rng.uniform(1 - cfg.scale_aug, 1 + cfg.scale_aug, size=(B, 1, 3))
             g, p, a = g * s, p * s, a * s
+            if an is not None:  # a normal transforms with the inverse scale
+                an = an / s
+                an /= np.maximum(np.linalg.norm(an, axis=-1, keepdims=True), 1e-12)
             # back to diagonal 1 (as frame.canonicalize would) using the full condition cloud
             full = self.cond[idx].astype(np.float64) * s
             diag = np.linalg.norm(full.max(axis=1) - full.min(axis=1), axis=-1)[:, None, None]
@@ -133,6 +155,8 @@ class PairData:
             g = g + rng.normal(scale=cfg.jitter, size=g.shape)
         out = (torch.from_numpy(np.concatenate([p.astype(np.float32), nrm], axis=-1)),
                torch.from_numpy(g.astype(np.float32)))
+        if an is not None:
+            a = np.concatenate([a, an], axis=-1)
         return out + (torch.from_numpy(a.astype(np.float32)),) if anchors else out
 
 
@@ -148,6 +172,24 @@ def lr_at(step: int, cfg: TrainConfig) -> float:
 def ema_update(ema: torch.nn.Module, model: torch.nn.Module, decay: float) -> None:
     for pe, pm in zip(ema.parameters(), model.parameters()):
         pe.mul_(decay).add_(pm.detach(), alpha=1 - decay)
+
+
+def _widen_anchor_embed(src: dict, own: dict, mcfg: ModelConfig) -> dict:
+    """Starting an ``anchor_normals`` model from an anchored one without them: the denoiser's input
+    projection gets zero columns for the anchor's normal and keeps every other column, so the new
+    model starts as exactly the old function."""
+    key = "denoiser.embed.proj.weight"
+    old_cfg = ModelConfig.from_dict(src["model_config"]) if src.get("model_config") else None
+    if (old_cfg is None or not mcfg.anchor_normals or not old_cfg.anchored or old_cfg.anchor_normals
+            or key not in src["ema"] or key not in own):
+        return {}
+    w_old, w_new = src["ema"][key].float(), own[key]
+    if w_new.shape[1] != w_old.shape[1] + 3:
+        return {}
+    w = torch.zeros_like(w_new)
+    w[:, :3] = w_old[:, :3]  # anchor xyz
+    w[:, 6:] = w_old[:, 3:]  # x_t and the Fourier features; columns 3..5 (the anchor's normal) start at 0
+    return {key: w}
 
 
 @torch.no_grad()
@@ -234,6 +276,8 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
         own = model.state_dict()
         take = {k: (v.float() if v.is_floating_point() else v) for k, v in src["ema"].items()
                 if k in own and own[k].shape == v.shape}
+        widened = _widen_anchor_embed(src, own, mcfg)
+        take.update(widened)
         model.load_state_dict(take, strict=False)
         fresh = sorted(set(own) - set(take))
         if fresh and rank == 0:
@@ -266,7 +310,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
     if eval_dir is not None and rank == 0:
         ev = PairData(eval_dir, limit=cfg.eval_pairs)
         heldout = _to_net(ev.batch(np.arange(len(ev)), cfg.points, np.random.default_rng(12345),
-                                   anchors=mcfg.anchored), mcfg, dev)
+                                   anchors=mcfg.anchor_dim), mcfg, dev)
     net = model
     if ddp:
         from torch.nn.parallel import DistributedDataParallel
@@ -295,7 +339,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
                 print(f"[train] step {step}: {len(data)} pairs from {data.shards} shards", flush=True)
         rng = np.random.default_rng([cfg.seed, step, rank])
         idx = rng.integers(0, len(data), size=per_rank)
-        x0, cond, anchor = _to_net(data.batch(idx, cfg.points, rng, cfg, anchors=mcfg.anchored), mcfg, dev)
+        x0, cond, anchor = _to_net(data.batch(idx, cfg.points, rng, cfg, anchors=mcfg.anchor_dim), mcfg, dev)
         for group in opt.param_groups:
             group["lr"] = lr_at(step, cfg)
         gen = torch.Generator(device=dev).manual_seed(int(rng.integers(2**62)))

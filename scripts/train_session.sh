@@ -17,6 +17,10 @@ THREADS=${2:-1}
 DATA=${DATA:-/work/data}
 RUN=${RUN:-/work/run-session}
 PY=${PY:-.venv/bin/python}
+# learning-rate schedule: cosine from LR to LR*MIN_LR_RATIO over STEPS (defaults: constant 3e-4)
+LR=${LR:-3e-4}
+STEPS=${STEPS:-1000000}
+MIN_LR_RATIO=${MIN_LR_RATIO:-1.0}
 CKPT=polycubenet/checkpoints/polycubenet-cpu.pt
 mkdir -p "$RUN"
 # the recipe the shipped checkpoint was trained with, as train flags
@@ -35,7 +39,7 @@ setsid nohup bash -c "
   $PY -m polycubenet.synth --out $DATA/heldout --count 256 --seed 2 --n-cond 2048 --n-target 2048 --workers 2 --no-progress &&
   $PY -m polycubenet.synth --out $DATA/train --count 4096 --seed 1 --n-cond 2048 --n-target 2048 --workers 2 --no-progress &&
   $PY -m polycubenet.train --data $DATA/train --eval-data $DATA/heldout --out $RUN --init $CKPT \
-      $RECIPE --steps 1000000 --lr 3e-4 --min-lr-ratio 1.0 --warmup 50 --threads $THREADS \
+      $RECIPE --steps $STEPS --lr $LR --min-lr-ratio $MIN_LR_RATIO --warmup 50 --threads $THREADS \
       --ckpt-every 100 --log-every 50 --no-progress --max-minutes $MINUTES
 " > "$RUN/train.out" 2>&1 &
 echo "training in the background: $RUN/train.out (recipe: $RECIPE)"

@@ -59,3 +59,18 @@ def tiny_net():
     with torch.no_grad():
         torch.nn.init.normal_(net.denoiser.out.weight, std=0.1)
     return net
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_unconfigure(config):
+    """Keep a fatal-signal report armed through the interpreter's teardown.
+
+    pytest's faulthandler plugin disarms at unconfigure, so a crash while the interpreter
+    finalises (native libraries' destructors, daemon threads) used to end the run with a bare
+    "Segmentation fault" and no trace.  Armed again here, the same crash prints every thread's
+    Python stack to stderr; the exit status is untouched."""
+    import faulthandler
+    import sys
+
+    if sys.__stderr__ is not None:
+        faulthandler.enable(file=sys.__stderr__, all_threads=True)

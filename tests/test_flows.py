@@ -129,6 +129,15 @@ def test_discover_folders_globs_and_preference(tmp_path):
         library.discover([tmp_path / "nothing-here"])
 
 
+def test_discover_volume_meshes_but_not_the_runs_own_output(tmp_path):
+    (tmp_path / "out" / "p").mkdir(parents=True)
+    for name in ("t.mesh", "u.vtu", "v.msh", "w.vtk", "p.stl", "p.mesh", "out/p/hex.vtu", "out/p/hex.mesh"):
+        (tmp_path / name).write_text("x")
+    found = [p.relative_to(tmp_path).as_posix() for p in library.discover([tmp_path], exclude=[tmp_path / "out"])]
+    assert found == ["p.stl", "t.mesh", "u.vtu", "v.msh", "w.vtk"]  # the surface beats the volume mesh of p
+    assert "out/p/hex.vtu" in [p.relative_to(tmp_path).as_posix() for p in library.discover([tmp_path])]
+
+
 def test_part_names_disambiguate_same_stems():
     names = library.part_names([Path("x/a.stl"), Path("y/a.stl"), Path("b.stl")], ["1" * 64, "2" * 64, "3" * 64])
     assert names == ["a-11111111", "a-22222222", "b"]

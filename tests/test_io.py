@@ -389,4 +389,89 @@ def test_write_surface_round_trip(tmp_path, shapes):
 
 def test_supported_format_tables():
     assert set(SUPPORTED_HEX_FORMATS) == {".vtu", ".vtk", ".mesh", ".inp", ".msh", ".bdf"}
-    assert {".stl", ".obj", ".ply", ".off", ".glb", ".step", ".stp", ".iges", ".igs"} == set(SUPPORTED_PART_FORMATS)
+    assert {".stl", ".obj", ".ply", ".off", ".glb", ".step", ".stp", ".iges", ".igs",
+            ".mesh", ".vtu", ".vtk", ".msh"} == set(SUPPORTED_PART_FORMATS)
+
+
+# --------------------------------------------------------------------------- volume meshes as parts
+
+
+@pytest.fixture(scope="module")
+def tet_block_with_hole(tmp_path_factory):
+    """A gmsh tet mesh of a 3 x 2 x 1 block with a through-hole of radius 0.4 (genus 1)."""
+    import meshio
+
+    from polycubenet.io import gmsh_session
+
+    d = tmp_path_factory.mktemp("volume")
+    with gmsh_session() as gmsh:
+        gmsh.model.add("block")
+        b = gmsh.model.occ.addBox(0, 0, 0, 3, 2, 1)
+        c = gmsh.model.occ.addCylinder(1.5, 1, -1, 0, 0, 3, 0.4)
+        gmsh.model.occ.cut([(3, b)], [(3, c)])
+        gmsh.model.occ.synchronize()
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.25)
+        gmsh.model.mesh.generate(3)
+        gmsh.write(str(d / "block.msh"))  # the file also holds gmsh's own boundary triangles
+        gmsh.model.remove()
+    m = meshio.read(d / "block.msh")
+    return d, m.points, m.cells_dict["tetra"]
+
+
+@pytest.mark.parametrize("ext", [".msh", ".mesh", ".vtu", ".vtk"])
+def test_tet_mesh_is_read_as_its_boundary(tet_block_with_hole, ext):
+    import meshio
+
+    d, pts, tets = tet_block_with_hole
+    path = d / "block.msh" if ext == ".msh" else d / f"block{ext}"
+    if ext != ".msh":
+        meshio.Mesh(pts, [("tetra", tets)]).write(path)
+    part = load_part(path)
+    exact = 3 * 2 * 1 - math.pi * 0.4**2
+    assert part.meta["genus"] == 1
+    assert abs(part.meta["volume"] - exact) < 0.02 * exact  # polygonal hole
+    # only boundary nodes are kept, and every one of them is on the block or the hole
+    V = part.vertices
+    on_box = np.isclose(V, 0).any(1) | np.isclose(V[:, 0], 3) | np.isclose(V[:, 1], 2) | np.isclose(V[:, 2], 1)
+    on_hole = np.isclose(np.hypot(V[:, 0] - 1.5, V[:, 1] - 1), 0.4, atol=1e-6)
+    assert (on_box | on_hole).all()
+    assert any("boundary of" in r for r in part.meta["repairs"])
+
+
+def test_mirrored_cells_and_hex_meshes_give_the_same_solid(tmp_path, tet_block_with_hole):
+    import meshio
+
+    _, pts, tets = tet_block_with_hole
+    meshio.Mesh(pts, [("tetra", tets[:, [0, 2, 1, 3]])]).write(tmp_path / "mirrored.vtu")
+    assert abs(load_part(tmp_path / "mirrored.vtu").meta["volume"] - load_part_volume(pts, tets)) < 1e-9
+    # a 2 x 2 x 2 block of hexes, as our own exports write it
+    g = np.stack(np.meshgrid(*[np.arange(3.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    idx = np.arange(27).reshape(3, 3, 3)
+    hexes = []
+    for i in range(2):
+        for j in range(2):
+            for k in range(2):
+                c = [idx[i, j, k], idx[i + 1, j, k], idx[i + 1, j + 1, k], idx[i, j + 1, k]]
+                hexes.append(c + [x + 1 for x in c])
+    write_hex(HexMesh(g, np.array(hexes)), tmp_path / "cube.mesh")
+    part = load_part(tmp_path / "cube.mesh")
+    assert part.meta["genus"] == 0 and abs(part.meta["volume"] - 8.0) < 1e-9
+    assert len(part.faces) == 6 * 4 * 2  # 24 boundary quads, two triangles each
+
+
+def load_part_volume(pts, tets) -> float:
+    p = pts[tets]
+    return float(np.abs(np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0])).sum() / 6)
+
+
+def test_surface_only_volume_file_and_empty_volume_file(tmp_path, shapes):
+    import meshio
+
+    mesh = shapes["torus"][0]
+    meshio.Mesh(mesh.vertices, [("triangle", mesh.faces)]).write(tmp_path / "surf.vtu")
+    part = load_part(tmp_path / "surf.vtu")
+    assert part.meta["genus"] == 1 and len(part.faces) == len(mesh.faces)
+    assert any("no solid cells" in r for r in part.meta["repairs"])
+    meshio.Mesh(mesh.vertices, [("line", np.array([[0, 1]]))]).write(tmp_path / "lines.vtu")
+    with pytest.raises(errors.EmptyMeshError, match="lines.vtu.*no solid cells"):
+        load_part(tmp_path / "lines.vtu")

@@ -48,16 +48,17 @@ def from_network(x: torch.Tensor, xyz_scale: float) -> torch.Tensor:
 def anchored_to_network(anchor: torch.Tensor, points: torch.Tensor | None, normals: torch.Tensor | None,
                         xyz_scale: float, gain: float) -> tuple[torch.Tensor | None, torch.Tensor]:
     """``(x0, anchor)`` in network units for an anchored model: ``x0 = [(points - anchor) * xyz_scale * gain,
-    normals]`` (None without points) and the anchor scaled like any position."""
-    a = anchor * xyz_scale
+    normals]`` (None without points) and the anchor's position scaled like any position (an anchor's
+    normal, channels 3..5 when present, passes unchanged)."""
+    a = torch.cat([anchor[..., :3] * xyz_scale, anchor[..., 3:]], dim=-1)
     if points is None:
         return None, a
-    return torch.cat([(points - anchor) * (xyz_scale * gain), normals], dim=-1), a
+    return torch.cat([(points - anchor[..., :3]) * (xyz_scale * gain), normals], dim=-1), a
 
 
 def anchored_from_network(x: torch.Tensor, anchor_net: torch.Tensor, xyz_scale: float, gain: float) -> torch.Tensor:
     """Inverse of :func:`anchored_to_network` for a generated cloud: anchor + displacement, unit normals."""
-    p = anchor_net / xyz_scale + x[..., :3] / (xyz_scale * gain)
+    p = anchor_net[..., :3] / xyz_scale + x[..., :3] / (xyz_scale * gain)
     n = x[..., 3:6]
     n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
     return torch.cat([p, n], dim=-1)

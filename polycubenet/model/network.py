@@ -205,12 +205,14 @@ class ConditionEncoder(nn.Module):
 class Denoiser(nn.Module):
     """eps_theta(x_t, z_c, t): TS blocks over x_t with latents ``[z_c, z_init, embed(t)]``."""
 
-    def __init__(self, cfg: StreamConfig, point_dim: int, cond_width: int, fourier: int, anchored: bool = False):
+    def __init__(self, cfg: StreamConfig, point_dim: int, cond_width: int, fourier: int, anchor_dim: int = 0):
         super().__init__()
         d = cfg.dim
-        self.anchored = anchored
-        # anchored: the input is [anchor xyz, x_t] and the Fourier features are the anchor's position's
-        self.embed = PointEmbed(point_dim + (3 if anchored else 0), d, fourier)
+        self.anchored = anchor_dim > 0
+        self.anchor_dim = anchor_dim
+        # anchored: the input is [anchor (xyz, or xyz + part normal), x_t] and the Fourier features
+        # are the anchor's position's
+        self.embed = PointEmbed(point_dim + anchor_dim, d, fourier)
         self.latents = nn.Parameter(torch.randn(cfg.latents, d) * 0.02)
         self.cond_proj = nn.Linear(cond_width, d)
         self.time = nn.Sequential(nn.Linear(d, d), nn.SiLU(), nn.Linear(d, d))
@@ -225,6 +227,8 @@ class Denoiser(nn.Module):
         B = x_t.shape[0]
         if self.anchored != (anchor is not None):
             raise ValueError("an anchored denoiser needs anchor points (and only it takes them)")
+        if anchor is not None and anchor.shape[-1] != self.anchor_dim:
+            raise ValueError(f"anchors have {anchor.shape[-1]} channels; this denoiser takes {self.anchor_dim}")
         # one row at a time: a (B, d) GEMM takes another kernel for B = 1 than for B > 1, so a batched
         # request would differ from the same request alone in the last bits (then amplified by sampling)
         emb = timestep_embedding(t, self.latents.shape[1]).to(x_t.dtype)
@@ -266,7 +270,7 @@ class PolycubeNet(nn.Module):
         self.config = config
         self.encoder = ConditionEncoder(config.encoder, config.cond_dim, config.fourier)
         self.denoiser = Denoiser(config.denoiser, config.point_dim, config.encoder.dim, config.fourier,
-                                 anchored=config.anchored)
+                                 anchor_dim=config.anchor_dim)
 
     def encode(self, cond: torch.Tensor, chunk: int | None = None) -> torch.Tensor:
         return self.encoder(cond, chunk=chunk)
