@@ -53,6 +53,8 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--polycube-points", type=int, default=None, help="points of each classical/voxel polycube cloud")
         p.add_argument("--learned-points", type=int, default=None, help="points the model generates (default 4096)")
         p.add_argument("--seed", type=int, default=0)
+        p.add_argument("--keep-largest", action="store_true",
+                       help="a file with several solids/shells that do not touch: mesh the largest (default: refuse)")
         p.add_argument("--work", default=None, help="stage files and cache (default OUT/.work)")
         runner_args(p)
 
@@ -93,6 +95,8 @@ def _mesh_kwargs(a) -> dict:
     fallback = a.polycube == "auto" and not a.no_fallback
     kw = {"formats": [f.strip() for f in a.formats.split(",") if f.strip()], "polycube": polycube,
           "fallback": fallback, "seed": a.seed}
+    if getattr(a, "keep_largest", False):
+        kw["load_kw"] = {"keep_largest": True}
     if a.size is not None:
         kw.update(target_size=a.size, target_hexes=None)
     elif a.hexes is not None:

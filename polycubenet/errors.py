@@ -63,6 +63,10 @@ class MultipleComponentsError(PartError):
     """Several disconnected components (pass ``keep_largest=True`` to keep the largest)."""
 
 
+class SelfIntersectionError(PartError):
+    """The surface crosses itself: it bounds no well-defined solid."""
+
+
 class DegenerateVolumeError(PartError):
     """The enclosed volume is zero (flat) or the surface is self-inconsistent."""
 

@@ -118,6 +118,13 @@ def part_anchors(V: np.ndarray, F: np.ndarray, n: int, seed: int = 0, normals: b
     return out.astype(np.float32)
 
 
+def model_anchors(loaded: "Loaded", V: np.ndarray, F: np.ndarray, n: int, seed: int = 0) -> np.ndarray | None:
+    """The anchors ``loaded`` needs for a part ``(V, F)`` (canonical frame): None for a free-point
+    model, else :func:`part_anchors` with the part's normals when the model takes them."""
+    cfg = loaded.model.config
+    return part_anchors(V, F, n, seed, normals=cfg.anchor_normals) if cfg.anchored else None
+
+
 def _sample_batch(loaded: Loaded, conds: list[np.ndarray], n_out: int, seeds: list[int], *, steps, stride, eta,
                   device: str, chunk: int | None, progress: Callable | None,
                   anchors: list[np.ndarray] | None = None) -> list[np.ndarray]:
@@ -234,8 +241,8 @@ class ModelSource:
         t0 = time.perf_counter()
         seed = self.seed + config.seed
         n = int(getattr(config, "n_learned", None) or config.n_polycube)
-        cfg = loaded.model.config
-        anchors = [part_anchors(V, F, n, seed, normals=cfg.anchor_normals)] if cfg.anchored else None
+        a = model_anchors(loaded, V, F, n, seed)
+        anchors = None if a is None else [a]
         (cloud,) = generate([sample.points], n, model=loaded, steps=self.steps,
                             seed=seed, device=self.device, anchors=anchors)
         meta = {

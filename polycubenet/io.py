@@ -34,9 +34,8 @@ Only *safe* repairs are made, and each is recorded as a sentence in
 - with ``keep_largest=True``, keep the largest of several components.
 
 Everything else raises a :class:`~polycubenet.errors.PartError` subclass whose message
-starts with the file path and says what is wrong (see ``load_part``).  Self-intersections
-are *not* detected (that needs a spatial search; the pipeline's later stages report
-them as a bad polycube or a tangled mesh).
+starts with the file path and says what is wrong (see ``load_part``), self-intersecting
+surfaces included (``SelfIntersectionError``, found by MeshLab's per-face test).
 
 The topology checks are vectorised (sorted edge keys, ``np.unique``-style run lengths and
 ``scipy.sparse.csgraph.connected_components``), so a million-face surface is checked in
@@ -75,6 +74,7 @@ from .errors import (
     InvalidCoordinatesError,
     MultipleComponentsError,
     NonManifoldError,
+    SelfIntersectionError,
     NotTriangularError,
     OpenBoundaryError,
     PartError,
@@ -229,6 +229,8 @@ def load_part(
         Edges with more than two faces, pinched vertices, or a non-orientable surface.
     MultipleComponentsError
         Several components and ``keep_largest=False``.
+    SelfIntersectionError
+        Triangles that cross other triangles of the surface.
     DegenerateVolumeError
         Zero enclosed volume (a flat or collapsed surface).
     """
@@ -248,7 +250,8 @@ def load_part(
     meta: dict = {"path": str(path), "format": fmt, "units": unit}
     repairs: list[str] = []
     if fmt in _CAD_FORMATS:
-        vertices, faces, cad_meta = _read_cad(path, fmt, mesh_size=mesh_size, max_faces=max_faces, unit=unit)
+        vertices, faces, cad_meta = _read_cad(path, fmt, mesh_size=mesh_size, max_faces=max_faces, unit=unit,
+                                              repairs=repairs)
         meta.update(cad_meta)
     else:
         readers = {"stl": _read_stl, "off": _read_off, "obj": _read_obj, "ply": _read_ply, "glb": _read_glb,
@@ -391,6 +394,23 @@ def part_from_arrays(
         f[flip] = f[flip][:, ::-1]
         if record_orientation:
             repairs.append(f"reoriented {n_flip} of {len(f)} faces to a consistent orientation")
+    # -- self-intersections (before components: overlapping shells are crossings, not parts) --
+    crossing = self_intersecting_faces(v, f)
+    if len(crossing):
+        tri_area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+        share = float(tri_area[crossing].sum() / tri_area.sum())
+        c = v[f[crossing[0]]].mean(axis=0)
+        where_c = f"({c[0]:.4g}, {c[1]:.4g}, {c[2]:.4g})"
+        if share > tol.SELF_INTERSECTION_AREA:
+            raise SelfIntersectionError(
+                where,
+                f"the surface intersects itself: {len(crossing)} triangles ({share:.2%} of the area) cross other "
+                f"triangles, the first near {where_c}; it bounds no well-defined solid -- repair it in CAD",
+            )
+        # slivers crossing each other (common in scans and exports) are left as they are, and said
+        repairs.append(f"left {len(crossing)} slightly self-intersecting triangles ({share:.3%} of the area, the "
+                       f"first near {where_c}) as they are")
+
     n_comp = int(comp.max()) + 1
     center = 0.5 * (v.min(axis=0) + v.max(axis=0))
     face_vol = _face_volumes(v - center, f)
@@ -402,7 +422,8 @@ def part_from_arrays(
             raise MultipleComponentsError(
                 where,
                 f"{n_comp} disconnected components (faces per component: {shown}"
-                f"{', ...' if n_comp > 8 else ''}); pass keep_largest=True to keep the largest",
+                f"{', ...' if n_comp > 8 else ''}) that do not touch; mesh each from its own file, or keep the "
+                f"largest with keep_largest=True (CLI: --keep-largest)",
             )
         keep = int(np.argmax(np.abs(comp_vol)))
         mask = comp == keep
@@ -445,6 +466,18 @@ def part_from_arrays(
     return Part(
         vertices=np.ascontiguousarray(v, dtype=np.float64), faces=np.ascontiguousarray(f, dtype=np.int64), meta=meta
     )
+
+
+def self_intersecting_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Indices of the triangles that cross another triangle of the surface (MeshLab's per-face
+    self-intersection test, through pymeshlab; triangles that only share an edge or a vertex do
+    not count).  About 0.4 s for 160k triangles."""
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int32)))
+    ms.compute_selection_by_self_intersections_per_face()
+    return np.flatnonzero(ms.current_mesh().face_selection_array())
 
 
 def write_surface(vertices: np.ndarray, faces: np.ndarray, path: str | os.PathLike) -> Path:
@@ -1002,7 +1035,8 @@ def quiet_stdout() -> Iterator[None]:
         os.close(devnull)
 
 
-def _read_cad(path: Path, fmt: str, *, mesh_size: float | None, max_faces: int, unit: str | None):
+def _read_cad(path: Path, fmt: str, *, mesh_size: float | None, max_faces: int, unit: str | None,
+              repairs: list[str] | None = None):
     head = _read_bytes(path)
     file_units = _check_cad_file(path, fmt, head)
     scale = _MM_PER_UNIT[unit or "mm"]  # OpenCASCADE gives millimetres; we divide by this
@@ -1030,6 +1064,16 @@ def _read_cad(path: Path, fmt: str, *, mesh_size: float | None, max_faces: int, 
                 with quiet_stdout():
                     gmsh.model.occ.healShapes(tolerance=tol.CAD_SEW_REL * diag, sewFaces=True, makeSolids=True)
                     gmsh.model.occ.synchronize()
+            solids = gmsh.model.getEntities(3)
+            if len(solids) > 1:
+                # a multi-body part: solids that touch (or overlap) become one solid, their shared faces
+                # inside it; solids that do not touch stay apart (and are refused as several components)
+                with quiet_stdout():
+                    gmsh.model.occ.fuse(solids[:1], solids[1:])
+                    gmsh.model.occ.synchronize()
+                after = len(gmsh.model.getEntities(3))
+                if repairs is not None and after < len(solids):
+                    repairs.append(f"fused {len(solids)} touching solids into {after}")
             surfaces = gmsh.model.getEntities(2)
             h = float(mesh_size) * scale if mesh_size is not None else tol.CAD_MESH_SIZE_REL * diag
             if not h > 0:

@@ -44,3 +44,8 @@ OUTLIER_MAX_FRACTION = 0.05
 CPD_SIGMA2_MIN = 1e-12
 #: ICP stops when the update (rotation in radians, relative scale, translation) is below this
 ICP_STEP_MIN = 1e-12
+
+#: a surface whose self-crossing triangles make more than this fraction of its area is refused
+#: (SelfIntersectionError); below it (slivers in scans and exports: rockerarm has 0.02 %) they are
+#: left as they are and recorded in the part's repairs
+SELF_INTERSECTION_AREA = 1e-3

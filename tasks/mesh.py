@@ -49,7 +49,7 @@ def generate_batch(loaded: list[str], dests: list[str], n_out: list[int], key: s
         model = inference.load_model(checkpoint, device)
         anchors = None
         if model.model.config.anchored:  # each part's own points, moved onto its polycube by the model
-            anchors = [inference.part_anchors(p[0].vertices, p[0].faces, n, seed) for p, n in zip(parts, n_out)]
+            anchors = [inference.model_anchors(model, p[0].vertices, p[0].faces, n, seed) for p, n in zip(parts, n_out)]
         clouds = inference.generate([p[1].points for p in parts], n_out, model=model, steps=steps,
                                     seed=seed, device=device, point_budget=point_budget, anchors=anchors)
         meta = {"checkpoint": None if checkpoint is None else str(checkpoint), "steps": steps, "seed": seed}

@@ -27,6 +27,7 @@ from polycubenet.errors import (
     EmptyMeshError,
     InvalidCoordinatesError,
     MultipleComponentsError,
+    SelfIntersectionError,
     NonManifoldError,
     NotTriangularError,
     OpenBoundaryError,
@@ -484,6 +485,12 @@ BAD_CASES: list[Case] = [
         MultipleComponentsError,
         "two disjoint boxes",
         lambda p: write_stl(p, *join(cube(), cube((2, 0, 0), (3, 2, 2)))),
+    ),
+    Case(
+        "overlapping_boxes.stl",
+        SelfIntersectionError,
+        "two closed boxes that overlap (one surface crossing the other)",
+        lambda p: write_stl(p, *join(cube(), cube((0.5, 0.5, 0.5), (1.5, 1.5, 1.5)))),
     ),
     Case(
         "hollow_box.obj",

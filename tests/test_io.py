@@ -475,3 +475,52 @@ def test_surface_only_volume_file_and_empty_volume_file(tmp_path, shapes):
     meshio.Mesh(mesh.vertices, [("line", np.array([[0, 1]]))]).write(tmp_path / "lines.vtu")
     with pytest.raises(errors.EmptyMeshError, match="lines.vtu.*no solid cells"):
         load_part(tmp_path / "lines.vtu")
+
+
+# --------------------------------------------------------------------------- multi-body CAD files
+
+
+def _two_box_step(path: Path, gap: float) -> Path:
+    """A STEP file holding two unit boxes side by side along x, ``gap`` apart (0: sharing a face)."""
+    from polycubenet.io import gmsh_session
+
+    with gmsh_session() as gmsh:
+        gmsh.model.add("two-boxes")
+        gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
+        gmsh.model.occ.addBox(1 + gap, 0, 0, 1, 1, 1)
+        gmsh.model.occ.synchronize()
+        assert len(gmsh.model.getEntities(3)) == 2
+        gmsh.write(str(path))
+        gmsh.model.remove()
+    return path
+
+
+def test_touching_solids_are_fused_into_one_part(tmp_path):
+    part = load_part(_two_box_step(tmp_path / "touching.step", gap=0.0))
+    assert part.meta["genus"] == 0
+    assert abs(part.meta["volume"] - 2.0) < 1e-6
+    assert any("fused 2 touching solids into 1" in r for r in part.meta["repairs"])
+    # no face is left inside: the bounding box of the single closed surface is the union's
+    assert np.allclose(part.vertices.min(0), 0) and np.allclose(part.vertices.max(0), [2, 1, 1])
+
+
+def test_disjoint_solids_are_refused_with_the_count_or_the_largest_is_kept(tmp_path):
+    path = _two_box_step(tmp_path / "apart.step", gap=0.5)
+    with pytest.raises(errors.MultipleComponentsError, match=r"apart.step.*2 disconnected components.*do not touch"):
+        load_part(path)
+    part = load_part(path, keep_largest=True)
+    assert abs(part.meta["volume"] - 1.0) < 1e-6
+
+
+def test_self_intersecting_surface_is_refused_and_slivers_are_recorded(tmp_path):
+    import trimesh
+
+    from polycubenet.io import part_from_arrays, write_surface
+
+    s = trimesh.creation.icosphere(4)
+    V = np.array(s.vertices)
+    V[np.argmax(V[:, 2])] = [0, 0, -1.5]  # the north pole pushed out through the south
+    with pytest.raises(errors.SelfIntersectionError, match=r"poked.stl: the surface intersects itself: \d+ triangles"):
+        load_part(write_surface(V, s.faces, tmp_path / "poked.stl"))
+    ok = part_from_arrays(s.vertices, s.faces)  # the same sphere untouched has no crossing
+    assert not any("self-intersecting" in r for r in ok.meta["repairs"])
