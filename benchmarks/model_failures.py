@@ -40,7 +40,7 @@ def part_rows(checkpoint, parts: list[Path], n_out: int, steps: int, n_sample: i
     from polycubenet.cleanup import remove_outliers
     from polycubenet.errors import PolycubeError
     from polycubenet.frame import canonicalize
-    from polycubenet.inference import generate, load_model, part_anchors
+    from polycubenet.inference import generate, load_model, model_anchors
     from polycubenet.io import load_part
     from polycubenet.sampling import poisson_disk
     from polycubenet.structure import extract
@@ -52,7 +52,8 @@ def part_rows(checkpoint, parts: list[Path], n_out: int, steps: int, n_sample: i
         Vc, _ = canonicalize(part.vertices, part.faces)
         sample = poisson_disk(Vc, part.faces, n_sample, seed=0)
         t0 = time.perf_counter()
-        anchors = [part_anchors(Vc, part.faces, n_out, 0)] if loaded.model.config.anchored else None
+        a = model_anchors(loaded, Vc, part.faces, n_out, 0)
+        anchors = None if a is None else [a]
         (cloud,) = generate([sample.points], n_out, model=loaded, steps=steps, seed=0, device="cpu", anchors=anchors)
         t_gen = time.perf_counter() - t0
         genus = int(part.meta["genus"])
@@ -139,6 +140,9 @@ def main(argv=None) -> int:
     part_counts = table(prow, "example parts")
     print(f"\nheld-out: exact structure {ev['exact_structure_rate']:.0%}, genus match {ev['genus_match_rate']:.0%}, "
           f"median Chamfer {ev['chamfer_median']:.4f}; parts accepted {sum(r['accepted'] for r in prow)}/{len(prow)}")
+    if ev.get("label_accuracy_median") is not None:
+        print(f"labels right (axis and sign of the generated normal, median over pairs): {ev['label_accuracy_median']:.3f}; "
+              f"the part's own normals snapped: {ev['label_accuracy_part_normals_median']:.3f}")
 
     # the figure: the first held-out pairs and the first parts, with their reference polycubes
     held_items = []
@@ -173,7 +177,10 @@ def main(argv=None) -> int:
         meta = torch.load(args.checkpoint, map_location="cpu", weights_only=False)
         point = {"checkpoint": Path(args.checkpoint).name, "step": meta.get("step"),
                  "cpu_hours": meta.get("cpu_hours"), "diffusion": meta.get("diffusion"),
-                 "pairs": ev["pairs"], "n_out": args.n_out, "steps": args.steps,
+                 "pairs": ev["pairs"], "n_out": args.n_out, "n_generated": ev.get("n_generated"), "steps": args.steps,
+                 "anchor_normals": bool((meta.get("model_config") or {}).get("anchor_normals")),
+                 "label_accuracy": ev.get("label_accuracy_median"),
+                 "label_accuracy_part_normals": ev.get("label_accuracy_part_normals_median"),
                  "anchored": bool((meta.get("model_config") or {}).get("anchored")),
                  "chamfer_median": ev["chamfer_median"], "chamfer_identity": ev.get("chamfer_identity_median"),
                  "exact": ev["exact_structure_rate"],

@@ -24,6 +24,8 @@ EXIT_OK, EXIT_CRASH, EXIT_USAGE = 0, 1, 2
 
 
 def _parser() -> argparse.ArgumentParser:
+    from polycubenet import library
+
     ap = argparse.ArgumentParser(prog="polycubenet", description="All-hex meshing of CAD libraries through polycubes.")
     ap.add_argument("-v", "--verbose", action="store_true", help="show Prefect's logs")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -53,6 +55,12 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--polycube-points", type=int, default=None, help="points of each classical/voxel polycube cloud")
         p.add_argument("--learned-points", type=int, default=None, help="points the model generates (default 4096)")
         p.add_argument("--seed", type=int, default=0)
+        p.add_argument("--part-timeout", type=float, default=library.DEFAULT_PART_TIMEOUT,
+                       help="seconds one part may run before it becomes a failed row and its worker is restarted "
+                            f"(default {library.DEFAULT_PART_TIMEOUT:g}; 0: no limit)")
+        p.add_argument("--worker-memory", default=None,
+                       help="memory cap of each local Dask worker, e.g. 4GiB (default: the machine's memory shared "
+                            "between the workers); a part past it fails and the batch goes on")
         p.add_argument("--keep-largest", action="store_true",
                        help="a file with several solids/shells that do not touch: mesh the largest (default: refuse)")
         p.add_argument("--work", default=None, help="stage files and cache (default OUT/.work)")
@@ -95,6 +103,7 @@ def _mesh_kwargs(a) -> dict:
     fallback = a.polycube == "auto" and not a.no_fallback
     kw = {"formats": [f.strip() for f in a.formats.split(",") if f.strip()], "polycube": polycube,
           "fallback": fallback, "seed": a.seed}
+    kw["part_timeout"] = a.part_timeout if a.part_timeout and a.part_timeout > 0 else None
     if getattr(a, "keep_largest", False):
         kw["load_kw"] = {"keep_largest": True}
     if a.size is not None:
@@ -204,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
         if a.command == "mesh":
             from .mesh_library import mesh_library
 
-            flow = mesh_library.with_options(task_runner=make_runner(a.workers, a.dask_address, a.runner))
+            flow = mesh_library.with_options(task_runner=make_runner(a.workers, a.dask_address, a.runner, a.worker_memory))
             _run_with_progress(lambda: flow(inputs=[str(p) for p in parts], out=a.out, **kw), len(parts), "mesh")
             _print_summary(a.out)
         elif a.command == "retry":

@@ -95,6 +95,7 @@ def mesh_library(
     load_kw: dict | None = None,
     artifacts: bool = True,
     merge: bool = True,
+    part_timeout: float | None = library.DEFAULT_PART_TIMEOUT,
 ) -> dict:
     """Mesh the parts named by ``inputs`` into ``out`` (see the module docstring).
 
@@ -114,6 +115,11 @@ def mesh_library(
         output points of one generation batch, default ``inference.DEFAULT_POINT_BUDGET``)
     work : stage files and cache records (default ``<out>/.work``)
     merge : keep the manifest rows of parts not in this run
+    part_timeout : wall-clock seconds one part's task may run (its loading, or its chain of polycube
+        sources to the export); past it the part becomes a failed row saying so, its task is
+        cancelled and -- on Dask -- the worker process running it is restarted, and the batch goes
+        on.  None: no limit.  (A part's memory is capped by the Dask worker's ``memory_limit``:
+        a worker past it is restarted by its nanny and the part fails after one retry.)
 
     Returns
     -------
@@ -281,6 +287,9 @@ def mesh_library(
 
     def unexpected(part: _Part, stage: str, exc: BaseException):
         msg = f"{type(exc).__name__}: {exc}"
+        if type(exc).__name__ == "KilledWorker":  # the nanny restarted the worker twice while it ran this part
+            msg = (f"WorkerDied: the worker process died twice while meshing this part (over the worker memory "
+                   f"limit, --worker-memory, or a crash); the batch went on ({exc})")
         if not isinstance(exc, (PartError, PolycubeError)):
             logger.error(f"{part.name}: unexpected failure at {stage}: {msg}")
         part.stage = stage
@@ -289,8 +298,23 @@ def mesh_library(
     for part in parts:
         submit_load(part)
 
+    watch = _Watch(runner, part_timeout)
     while pending:
-        fut = done_q.get()
+        try:
+            fut = done_q.get(timeout=watch.poll)
+        except queue.Empty:
+            for f, part, seconds in watch.overdue(pending):
+                del pending[f]
+                reached = [st for st in library.STAGES[1:5] if any(Path(path_of(part, st, s)).exists()
+                                                                    for s in part.sources)]
+                at = library.STAGES[library.STAGES.index(reached[-1]) + 1] if reached else part.stage
+                what = watch.abandon(f)
+                logger.error(f"{part.name}: over the per-part time limit ({seconds:.0f} s > {part_timeout:g} s) "
+                             f"at {at}; {what}")
+                part.stage = at
+                finish(part, "failed", f"PartTimeout: the part ran {seconds:.0f} s, over the per-part limit of "
+                                       f"{part_timeout:g} s (--part-timeout), during {at}; {what}")
+            continue
         if fut not in pending:
             continue
         who, what = pending.pop(fut)
@@ -350,6 +374,57 @@ def mesh_library(
                 f"reused {reused}; {rejected:.1f} s went to rejected polycubes; manifest {manifest}")
     return {"out": str(out_p), "manifest": str(manifest), "report": str(report), "counts": counts,
             "computed": computed, "reused": reused, "rows": rows}
+
+
+class _Watch:
+    """The per-part time limit: which running tasks are past it, and how to let one go.
+
+    A task's clock starts when it is first seen running (on Dask: in the scheduler's
+    ``processing``; in a thread pool: ``Future.running()``), not when it was queued."""
+
+    def __init__(self, runner, limit: float | None):
+        self.limit = limit
+        self.runner = runner
+        self.started: dict = {}
+        self.poll = None if limit is None else min(1.0, max(0.05, limit / 10))
+
+    def _dask(self):
+        return self.runner.client if isinstance(self.runner, DaskTaskRunner) else None
+
+    def overdue(self, pending: dict) -> list:
+        if self.limit is None:
+            return []
+        now = time.monotonic()
+        client = self._dask()
+        busy = None
+        if client is not None:
+            busy = {k for keys in client.processing().values() for k in keys}
+        out = []
+        for fut, (who, what) in list(pending.items()):
+            wf = fut.wrapped_future
+            running = (wf.key in busy) if busy is not None else getattr(wf, "running", lambda: False)()
+            if running:
+                t0 = self.started.setdefault(fut, now)
+                if now - t0 > self.limit and what != "generate":
+                    out.append((fut, who, now - t0))
+        return out
+
+    def abandon(self, fut) -> str:
+        """Cancel ``fut``'s task and free its worker; says what was done."""
+        wf = fut.wrapped_future
+        client = self._dask()
+        if client is None:
+            wf.cancel()
+            return "a thread pool cannot stop a running task: it finishes in the background, unused"
+        where = [addr for addr, keys in client.processing().items() if wf.key in keys]
+        client.cancel(wf)
+        if not where:
+            return "its task was cancelled"
+        try:
+            client.restart_workers(where, timeout=60)
+            return f"its worker {where[0]} was restarted"
+        except Exception as exc:  # noqa: BLE001 - a worker without a nanny cannot be restarted
+            return f"its task was cancelled, but the worker {where[0]} could not be restarted ({exc})"
 
 
 def _row(part: _Part, out: Path, run_id: str | None) -> dict:

@@ -27,23 +27,30 @@ _PASS_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "PREF
              "PREFECT_SERVER_ANALYTICS_ENABLED", "DO_NOT_TRACK", "VTK_DEFAULT_OPENGL_WINDOW")
 
 
-def dask_runner(workers: int | None = None, address: str | None = None, threads_per_worker: int = 1) -> DaskTaskRunner:
+def dask_runner(workers: int | None = None, address: str | None = None, threads_per_worker: int = 1,
+                memory: str | None = None) -> DaskTaskRunner:
     """A DaskTaskRunner on ``address`` (a running scheduler: its workers must import this
     project; GPU workers started with ``--resources GPU=1``) or on a new local cluster of
-    ``workers`` single-threaded processes (default 1)."""
+    ``workers`` single-threaded processes (default 1), each capped at ``memory`` (e.g. ``"4GiB"``;
+    default Dask's: the machine's memory shared between the workers).  A worker past its cap is
+    restarted by its nanny; a part whose worker dies twice fails (``allowed-failures`` is 1,
+    set in :func:`prepare_dask`) and the batch goes on."""
     if address:
         return DaskTaskRunner(address=address)
-    return DaskTaskRunner(cluster_kwargs={"n_workers": int(workers or 1), "threads_per_worker": threads_per_worker,
-                                          "processes": True, "dashboard_address": ":0"})
+    kw = {"n_workers": int(workers or 1), "threads_per_worker": threads_per_worker, "processes": True,
+          "dashboard_address": ":0"}
+    if memory:
+        kw["memory_limit"] = memory
+    return DaskTaskRunner(cluster_kwargs=kw)
 
 
-def make_runner(workers: int | None = None, address: str | None = None, kind: str = "dask"):
+def make_runner(workers: int | None = None, address: str | None = None, kind: str = "dask", memory: str | None = None):
     """``kind="dask"`` (:func:`dask_runner`) or ``"threads"`` (a thread pool, for tests)."""
     if kind == "threads":
         return ThreadPoolTaskRunner(max_workers=int(workers or 1))
     if kind != "dask":
         raise ValueError(f"unknown task runner kind {kind!r}; expected 'dask' or 'threads'")
-    return dask_runner(workers, address)
+    return dask_runner(workers, address, memory=memory)
 
 
 def current_api_url() -> str | None:
@@ -70,6 +77,11 @@ def prepare_dask(runner) -> None:
     if not isinstance(runner, DaskTaskRunner) or runner.address or runner._client is not None:
         return
     keep_glibc_malloc_defaults()
+    import dask
+
+    # a task whose worker dies is retried once elsewhere (a killed worker), not three times (a part that
+    # exhausts every worker's memory would take the whole cluster down three times over)
+    dask.config.set({"distributed.scheduler.allowed-failures": 1})
     env = dict(runner.cluster_kwargs.get("env") or {})
     url = current_api_url()
     if url:

@@ -67,6 +67,8 @@ STAGE_VERSIONS = {
 #: stage names in pipeline order (what ``stage reached`` in the manifest refers to)
 STAGES = ("load_sample", "polycube", "extract", "register", "pullback", "export")
 MANIFEST = "manifest.json"
+#: default wall-clock limit of one part in a batch (seconds): generous, a part takes ~10-60 s
+DEFAULT_PART_TIMEOUT = 1800.0
 REPORT = "report.html"
 
 

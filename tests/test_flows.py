@@ -409,6 +409,52 @@ def test_dask_runner_local_cluster(batch, part_lib):
     assert len(manifest["parts"]) == 5  # merged with the earlier rows
 
 
+def test_part_over_the_time_limit_fails_alone_and_the_batch_goes_on(prefect_harness, part_lib, tmp_path, monkeypatch):
+    """A part stuck in a stage (here: extraction blocked until the test ends) becomes a failed row
+    naming the limit and the stage once it has run ``part_timeout`` seconds; the other part meshes."""
+    import threading
+
+    release = threading.Event()
+    real = library.cleanup_extract
+    calls = []
+
+    def slow(*a, **k):
+        calls.append(1)
+        if len(calls) == 1:  # the first part to get there is stuck
+            release.wait(120)
+        return real(*a, **k)
+
+    monkeypatch.setattr(library, "cleanup_extract", slow)
+    from flows import mesh_library as ml
+
+    # a thread cannot be stopped: the flow (its thread pool) ends only when the stuck call returns, so the
+    # call is released as soon as its part has been written off
+    monkeypatch.setattr(ml, "PROGRESS_HOOKS", [lambda ev: ev["status"] == "failed" and release.set()])
+    try:
+        t0 = time.monotonic()
+        _, res = _mesh([part_lib / f"synth-{s}.stl" for s in GOOD], tmp_path / "out", part_timeout=30.0)
+        assert time.monotonic() - t0 < 100  # did not wait for the stuck stage
+    finally:
+        release.set()
+    rows = res["rows"]
+    assert sorted(r["status"] for r in rows) == ["failed", "meshed"], [r["error"] for r in rows]
+    bad = next(r for r in rows if r["status"] == "failed")
+    assert bad["stage"] == "extract"
+    assert bad["error"].startswith("PartTimeout:") and "over the per-part limit of 30 s" in bad["error"]
+    manifest = library.read_manifest(tmp_path / "out")
+    assert sorted(r["status"] for r in manifest["parts"]) == ["failed", "meshed"]
+
+
+def test_dask_worker_of_a_part_over_the_limit_is_restarted(prefect_harness, part_lib, tmp_path):
+    """On Dask the task past the limit is cancelled and its worker process restarted: with a limit
+    shorter than any part, every part fails with that reason and the flow still completes."""
+    state, res = _mesh([part_lib / f"synth-{s}.stl" for s in GOOD], tmp_path / "out", runner=_runner("dask", 1),
+                       part_timeout=0.3)
+    assert state.is_completed() and res["counts"] == {"meshed": 0, "failed": 2}
+    for r in res["rows"]:
+        assert r["error"].startswith("PartTimeout:") and "was restarted" in r["error"], r["error"]
+
+
 def test_local_dask_workers_start_without_malloc_trim(monkeypatch):
     """Dask's default MALLOC_TRIM_THRESHOLD_ made numpy-heavy stages 2-3x slower in its workers: the
     runner's local cluster must start its workers without it (and keep the thread limit)."""
