@@ -654,3 +654,66 @@ def test_when_every_source_fails_the_best_invalid_mesh_is_exported(prefect_harne
     assert reasons[1].startswith("pullback: the classical polycube's hex mesh is not valid (minimum scaled Jacobian -0.400)")
     assert reasons[2].startswith("voxel polycube rejected at polycube: no voxel polycube in this test")
     assert (tmp_path / "out" / f"synth-{GOOD[0]}" / "hex.vtu").is_file()
+
+
+@pytest.mark.slow
+def test_real_dask_cluster_survives_a_killed_worker(prefect_harness, tmp_path):
+    """A ``dask scheduler`` and two ``dask worker`` processes on localhost; the flow meshes a folder
+    through ``--dask-address``; one worker (nanny and process) is killed with SIGKILL while it runs a
+    part.  Its task is rescheduled on the other worker and every part still finishes."""
+    from distributed import Client
+    from prefect.settings import PREFECT_API_URL
+
+    from flows.runners import make_runner
+
+    drop = tmp_path / "drop"
+    library.write_synthetic_parts(drop, [*GOOD, 9007])
+    sched_file = tmp_path / "scheduler.json"
+    env = {**os.environ, "PREFECT_API_URL": PREFECT_API_URL.value(), "PYTHONPATH": str(ROOT),
+           "OMP_NUM_THREADS": "1", "PREFECT_LOGGING_LEVEL": "WARNING"}
+    common = dict(cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    procs = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--scheduler-file",
+                               str(sched_file), "--port", "0", "--dashboard-address", ":0"], **common)]
+    try:
+        deadline = time.time() + 60
+        while not sched_file.exists() and time.time() < deadline:
+            time.sleep(0.2)
+        for _ in range(2):
+            procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", "--scheduler-file",
+                                           str(sched_file), "--nthreads", "1", "--dashboard-address", ":0"], **common))
+        client = Client(scheduler_file=str(sched_file), timeout=60)
+        client.wait_for_workers(2, timeout=120)
+        address = client.scheduler.address
+        nanny_of = {addr: ppid for addr, ppid in client.run(os.getppid).items()}
+        pid_of = client.run(os.getpid)
+
+        killed = {}
+
+        def kill_first_busy_worker():
+            end = time.time() + 240
+            while time.time() < end and not killed:
+                for addr, keys in client.processing().items():
+                    if keys and addr in pid_of:
+                        for pid in (pid_of[addr], nanny_of[addr]):
+                            with contextlib.suppress(ProcessLookupError):
+                                os.kill(pid, signal.SIGKILL)
+                        killed[addr] = list(keys)
+                        return
+                time.sleep(0.05)
+
+        import contextlib
+        import threading
+
+        killer = threading.Thread(target=kill_first_busy_worker, daemon=True)
+        killer.start()
+        state, res = _mesh([drop], tmp_path / "out", runner=make_runner(address=address))
+        killer.join(timeout=5)
+        assert killed, "no worker was ever busy"
+        assert state.is_completed() and res["counts"] == {"meshed": 3, "failed": 0}, [r["error"] for r in res["rows"]]
+        assert len(client.scheduler_info()["workers"]) == 1  # the killed one stayed dead: the other did the rest
+        client.close()
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+            p.wait(timeout=30)
