@@ -167,3 +167,54 @@ def test_an_anchored_model_trains_resumes_and_publishes(shards, tmp_path):
     pub = publish(run / "last.pt", tmp_path / "pub.pt")
     loaded = load_checkpoint(pub)
     assert loaded.model.config.anchored and loaded.meta["cpu_hours"] > 0
+
+
+def test_anchor_normals_are_the_parts_normals_and_turn_with_the_scaling(shards):
+    """With 6-channel anchors each anchor also carries the part's unit normal at its point (that of the
+    nearest condition point); an anisotropic scaling turns it as a normal turns (inverse scale)."""
+    data = PairData(shards)
+    cfg = dataclasses.replace(CFG, jitter=0.0, scale_aug=0.0)
+    _, _, anchor = data.batch(np.array([2]), 64, np.random.default_rng(5), cfg, anchors=6)
+    a = anchor[0].numpy()
+    assert a.shape == (64, 6)
+    np.testing.assert_allclose(np.linalg.norm(a[:, 3:], axis=1), 1.0, atol=1e-5)
+    j = np.argmin(((data.cond[2][None] - a[:, None, :3]) ** 2).sum(-1), axis=1)
+    assert np.mean(np.sum(data.cond_normals[2][j] * a[:, 3:], axis=1) > 0.99) > 0.95
+    # under the anisotropic scaling the same draws give the same points: their normals are n / s, renormalised
+    x_raw, _, _ = data.batch(np.array([2]), 64, np.random.default_rng(5), cfg, anchors=6)
+    _, _, scaled = data.batch(np.array([2]), 64, np.random.default_rng(5), CFG, anchors=6)
+    sc = scaled[0].numpy()
+    np.testing.assert_allclose(np.linalg.norm(sc[:, 3:], axis=1), 1.0, atol=1e-5)
+    off_axis = np.abs(a[:, 3:]).max(1) < 0.95
+    if off_axis.any():  # a normal not along an axis turns
+        assert np.abs(sc[off_axis, 3:] - a[off_axis, 3:]).max() > 1e-3
+
+
+def test_an_anchor_normals_model_starts_as_the_anchored_one_it_widens(shards, tmp_path):
+    """``--init`` from an anchored model without normals: the input projection gets zero columns for
+    the normal, so the new model computes exactly the old function until it trains."""
+    from polycubenet.model import preset as model_preset
+    from polycubenet.model.checkpoint import load_checkpoint, publish
+
+    old_cfg = dataclasses.replace(model_preset("tiny"), anchored=True)
+    train(shards, tmp_path / "old", dataclasses.replace(CFG, preset="tiny", steps=3), progress=False,
+          model_config=old_cfg)
+    old = load_checkpoint(publish(tmp_path / "old" / "last.pt", tmp_path / "old.pt")).model.float().eval()
+    new_cfg = dataclasses.replace(old_cfg, anchor_normals=True)
+    train(shards, tmp_path / "new", dataclasses.replace(CFG, preset="tiny", steps=1, lr=0.0), progress=False,
+          model_config=new_cfg, init=tmp_path / "old" / "last.pt")
+    new = load_checkpoint(publish(tmp_path / "new" / "last.pt", tmp_path / "new.pt")).model.float().eval()
+    assert new.config.anchor_normals and new.denoiser.embed.proj.weight.shape[1] == \
+        old.denoiser.embed.proj.weight.shape[1] + 3
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(1, 20, 6, generator=g)
+    cond = torch.randn(1, 30, 3, generator=g)
+    anchor = torch.randn(1, 20, 3, generator=g)
+    normal = torch.nn.functional.normalize(torch.randn(1, 20, 3, generator=g), dim=-1)
+    t = torch.tensor([300])
+    with torch.no_grad():
+        a = old(x, t, cond, anchor=anchor)
+        b = new(x, t, cond, anchor=torch.cat([anchor, normal], -1))
+    torch.testing.assert_close(a, b, atol=1e-3, rtol=1e-3)  # float16 publishing
+    with pytest.raises(ValueError, match="anchors have 3 channels"):
+        new(x, t, cond, anchor=anchor)
