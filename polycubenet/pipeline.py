@@ -86,6 +86,9 @@ class PipelineConfig:
     polycube : ``"learned"``, ``"classical"``, ``"voxel"`` or ``"auto"`` (see the module
         docstring); ``"learned"`` by default so an injected source is used exactly as given
     classical, voxel : the settings of the classical and voxel polycubes
+    learned_min_sj : a valid mesh through the learned polycube with a lower minimum scaled
+        Jacobian does not end the chain: the classical chain is tried and the better mesh kept
+        (:mod:`polycubenet.policy`; None: any valid learned mesh is kept)
     """
 
     n_sample: int = 4096
@@ -100,6 +103,7 @@ class PipelineConfig:
     polycube: str = "learned"
     classical: ClassicalConfig = ClassicalConfig()
     voxel: VoxelConfig = VoxelConfig()
+    learned_min_sj: float | None = 0.2
 
 
 #: the values of ``PipelineConfig.polycube`` (and of the command-line ``--polycube``): ``policy.MODES``
@@ -293,7 +297,7 @@ def mesh_surface(
             return Attempt(label, dict(mesh_c.meta), payload=(cloud, poly, mesh_c), seconds=tracker.seconds,
                            label=cloud.meta.get("provenance") or label)
 
-        outcome = run_chain(list(chain), attempt)
+        outcome = run_chain(list(chain), attempt, learned_min_sj=config.learned_min_sj)
         clock.timings, clock.tracker = timings, None
         if outcome.chosen is None:
             exc = outcome.error

@@ -18,9 +18,14 @@ The rules:
   the next source; for the learned source, so does *any* other error of its attempt
   (generation, registration, pullback), since the classical chain does not depend on it.
   A :class:`~polycubenet.errors.PartError` is final: a bad part is bad for every source.
-  A source whose pulled-back mesh is not valid is also left, its mesh kept as a candidate.
-* **The kept mesh**: the first valid one; when none is, the candidate with the highest
-  minimum scaled Jacobian (:func:`mesh_rank`), reported as not valid.
+  A source whose pulled-back mesh is not valid is also left, its mesh kept as a candidate;
+  so is a *learned* mesh that is valid but under ``learned_min_sj`` (the project's quality
+  bar, ``PipelineConfig.learned_min_sj`` = 0.2): the classical chain is the reference, and a
+  learned polycube must give a mesh that good to be kept without comparing.
+* **The kept mesh**: the first valid one that ends the chain, unless an earlier candidate
+  ranks higher (:func:`mesh_rank`: valid first, then the higher minimum scaled Jacobian);
+  when none is valid, the candidate with the highest minimum scaled Jacobian, reported as
+  not valid.
 
 Every reason a source was left is one sentence in :attr:`Outcome.reasons`
 (``"<source> polycube rejected at <stage>: <reason>"`` or
@@ -128,7 +133,16 @@ class StageTracker:
         self.stage = "polycube"
 
 
-def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt]) -> Outcome:
+def below_bar_reason(label: str, meta: dict, bar: float) -> str:
+    """Why a valid learned mesh did not end the chain (one sentence)."""
+    sj = meta.get("sj_min")
+    sj = "unknown" if sj is None else f"{float(sj):.3f}"
+    return (f"the {label} polycube's hex mesh is valid but its minimum scaled Jacobian {sj} is under {bar:g}: "
+            "the next polycube was tried and the better mesh kept")
+
+
+def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt],
+              learned_min_sj: float | None = None) -> Outcome:
     """Try ``sources`` in order with the policy of this module (see the module docstring).
 
     ``attempt(source, tracker)`` runs the source's stages, setting ``tracker.stage`` as it goes
@@ -168,11 +182,16 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
         if not att.seconds:
             att.seconds = dict(tracker.seconds)
         attempts.append(att)
-        if att.quality.get("valid") or last:
+        sj = att.quality.get("sj_min")
+        below = (src == "learned" and learned_min_sj is not None and att.quality.get("valid")
+                 and (sj is None or float(sj) < learned_min_sj))
+        if (att.quality.get("valid") and not below) or last:
             chosen = att
             break
         candidates.append(att)
-        reasons.append(f"pullback: {invalid_mesh_reason(att.label or src, att.quality)}")
+        why = below_bar_reason(att.label or src, att.quality, learned_min_sj) if below else \
+            invalid_mesh_reason(att.label or src, att.quality)
+        reasons.append(f"pullback: {why}")
         reject(att.seconds)
     pool = candidates + ([chosen] if chosen is not None and chosen not in candidates else [])
     if not pool:  # every source was rejected before it gave a mesh
@@ -181,7 +200,11 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
         return Outcome(None, reasons, rejected, attempts, error=exc, error_source=src)
     best = max(pool, key=lambda a: mesh_rank(a.quality))
     if chosen is not None and best is not chosen:  # the last source's mesh is worse than an earlier one
-        reasons.append(f"pullback: {invalid_mesh_reason(chosen.label or chosen.source, chosen.quality)}")
+        label = chosen.label or chosen.source
+        why = (f"the {label} polycube's hex mesh is valid but worse (minimum scaled Jacobian "
+               f"{float(chosen.quality.get('sj_min')):.3f})" if chosen.quality.get("valid")
+               else invalid_mesh_reason(label, chosen.quality))
+        reasons.append(f"pullback: {why}")
         reject(chosen.seconds)
     if best in candidates:  # counted as rejected when it was left; kept now
         for k, v in best.seconds.items():

@@ -191,7 +191,7 @@ def _chain(state, name, path, loaded, sources, keys, paths, config, formats, out
 
     rejected: dict = {}
     try:
-        outcome = run_chain(list(sources), attempt)
+        outcome = run_chain(list(sources), attempt, learned_min_sj=config.learned_min_sj)
     except FINAL_ERRORS as exc:  # a bad part: final whatever the source
         reason = getattr(exc, "fallback_reason", None)
         return failed(exc.stage, exc, exc.source, [reason] if reason else [])

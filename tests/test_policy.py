@@ -85,3 +85,22 @@ def test_when_every_source_is_rejected_the_last_error_is_returned_with_the_earli
     out = run_chain(["learned", "voxel"], attempt)
     assert out.chosen is None and out.error_source == "voxel" and "no resolution" in str(out.error)
     assert out.reasons == ["learned polycube rejected at polycube: no usable cloud"]
+
+
+def test_a_valid_learned_mesh_under_the_bar_is_compared_with_the_classical_one():
+    """A learned mesh that is valid but under ``learned_min_sj`` does not end the chain: the classical
+    one is meshed too and the better kept -- either way round; the classical chain has no such bar."""
+    chain = ["learned", "classical", "voxel"]
+    attempt, calls = _scripted({"learned": {"valid": True, "sj_min": 0.05}, "classical": {"valid": True, "sj_min": 0.45}})
+    out = run_chain(chain, attempt, learned_min_sj=0.2)
+    assert calls == ["learned", "classical"] and out.chosen.source == "classical"
+    assert "valid but its minimum scaled Jacobian 0.050 is under 0.2" in out.fallback_reason
+    assert out.rejected_seconds == {"polycube": 1.0, "pullback": 2.0}  # the learned attempt's
+    attempt, calls = _scripted({"learned": {"valid": True, "sj_min": 0.15}, "classical": {"valid": True, "sj_min": 0.1}})
+    out = run_chain(chain, attempt, learned_min_sj=0.2)
+    assert out.chosen.source == "learned" and "classical polycube's hex mesh is valid but worse" in out.fallback_reason
+    assert out.rejected_seconds == {"polycube": 1.0, "pullback": 2.0}  # now the classical attempt's
+    attempt, calls = _scripted({"learned": {"valid": True, "sj_min": 0.25}, "classical": {"valid": True, "sj_min": 0.6}})
+    assert run_chain(chain, attempt, learned_min_sj=0.2).chosen.source == "learned" and calls == ["learned"]
+    attempt, calls = _scripted({"classical": {"valid": True, "sj_min": 0.05}, "voxel": {"valid": True, "sj_min": 0.5}})
+    assert run_chain(["classical", "voxel"], attempt, learned_min_sj=0.2).chosen.source == "classical"
