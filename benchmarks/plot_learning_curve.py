@@ -29,13 +29,16 @@ def main(argv=None) -> int:
     for p in pts:
         p["cpu_hours"] = p.get("cpu_hours") or SESSION1_CPU_HOURS
     pts.sort(key=lambda p: p["cpu_hours"])
-    print(f"{'CPU-h':>6} {'recipe':<26} {'steps':>5} {'Chamfer':>8} {'identity':>8} {'exact':>6} {'genus<=2':>8} {'parts':>6}")
+    print(f"{'CPU-h':>6} {'recipe':<30} {'extract':>7} {'steps':>5} {'Chamfer':>8} {'identity':>8} {'labels':>6} "
+          f"{'exact':>6} {'genus<=2':>8} {'parts':>6}")
     for p in pts:
         d = p.get("diffusion") or {}
-        recipe = f"{d.get('prediction', 'eps')}/{d.get('schedule', 'cosine')}" + ("/anch" if p.get("anchored") else "")
-        print(f"{p['cpu_hours']:>6.2f} {recipe:<26} {p['steps']:>5} {p['chamfer_median']:>8.4f} "
-              f"{p.get('chamfer_identity') or float('nan'):>8.4f} {p['exact']:>6.0%} "
-              f"{(p.get('genus_match_genus_le2') or 0):>8.0%} {p['parts_accepted']:>3}/{p['parts']}")
+        recipe = (f"{d.get('prediction', 'eps')}/{d.get('schedule', 'cosine')}" + ("/anch" if p.get("anchored") else "")
+                  + ("+normals" if p.get("anchor_normals") else ""))
+        lab = p.get("label_accuracy")
+        print(f"{p['cpu_hours']:>6.2f} {recipe:<30} {p.get('extraction', 1):>7} {p['steps']:>5} {p['chamfer_median']:>8.4f} "
+              f"{p.get('chamfer_identity') or float('nan'):>8.4f} {lab if lab is not None else float('nan'):>6.3f} "
+              f"{p['exact']:>6.0%} {(p.get('genus_match_genus_le2') or 0):>8.0%} {p['parts_accepted']:>3}/{p['parts']}")
     import matplotlib
 
     matplotlib.use("Agg")

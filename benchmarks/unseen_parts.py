@@ -1,6 +1,6 @@
 """Parts the project has never seen: how often is the learned polycube accepted on them?
 
-    python benchmarks/unseen_parts.py [--count 16] [--seed 7] [--mesh] \\
+    python benchmarks/unseen_parts.py [--count 16] [--seed 7] [--family blocks|mixed] [--mesh] \\
         [--json benchmarks/results/unseen_parts.json]
 
 Builds ``--count`` new CAD-like parts with gmsh's OpenCASCADE kernel, each from its own seed
@@ -29,8 +29,9 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
-def build_part(occ, rng: np.random.Generator) -> str:
-    """One random machined-style solid in the current gmsh model; returns a short description."""
+def build_part(occ, rng: np.random.Generator, family: str = "blocks") -> str:
+    """One random machined-style solid in the current gmsh model; returns a short description.
+    ``mixed`` adds round bosses, slanted cuts and a rotation about a random axis."""
     L, W, H = rng.uniform(40, 90), rng.uniform(25, 60), rng.uniform(12, 30)
     base = occ.addBox(0, 0, 0, L, W, H)
     what = [f"block {L:.0f}x{W:.0f}x{H:.0f}"]
@@ -39,9 +40,14 @@ def build_part(occ, rng: np.random.Generator) -> str:
         l, w = rng.uniform(0.25, 0.6) * L, rng.uniform(0.3, 1.0) * W
         x, y = rng.uniform(0, L - l), rng.uniform(0, W - w)
         h = rng.uniform(0.4, 1.2) * H
-        tool = occ.addBox(x, y, H - 1e-3, l, w, h)
+        if family == "mixed" and rng.random() < 0.5:
+            r = 0.5 * min(l, w)
+            tool = occ.addCylinder(x + r, y + r, H - 1e-3, 0, 0, h, r)
+            what.append("round boss")
+        else:
+            tool = occ.addBox(x, y, H - 1e-3, l, w, h)
+            what.append("boss")
         solid, _ = occ.fuse(solid, [(3, tool)])
-        what.append("boss")
     occ.synchronize()
     tools = []
     for _ in range(rng.integers(0, 3)):  # through-holes along z
@@ -61,28 +67,40 @@ def build_part(occ, rng: np.random.Generator) -> str:
         w = rng.uniform(0.1, 0.2) * W
         tools.append((3, occ.addBox(-5, rng.uniform(3, W - w - 3), rng.uniform(0.5, 0.8) * H, L + 10, w, 3 * H)))
         what.append("slot")
+    if family == "mixed" and rng.random() < 0.6:  # a slanted cut across one end
+        a = rng.uniform(20, 45)
+        wedge = occ.addBox(-L, -5, 0, L, W + 10, 3 * H)
+        occ.rotate([(3, wedge)], 0, 0, H * rng.uniform(0.3, 0.7), 0, 1, 0, -np.radians(a))
+        occ.translate([(3, wedge)], rng.uniform(0.1, 0.25) * L, 0, 0)
+        tools.append((3, wedge))
+        what.append(f"slanted end {a:.0f} deg")
     if tools:
         solid, _ = occ.cut(solid, tools)
     occ.synchronize()
+    if family == "mixed":
+        axis = rng.normal(size=3)
+        occ.rotate(occ.getEntities(3), 0, 0, 0, *axis, rng.uniform(0, np.pi))
+        occ.synchronize()
+        what.append("rotated")
     vols = occ.getEntities(3)
     if len(vols) != 1:
         raise RuntimeError(f"{len(vols)} volumes")
     return ", ".join(what)
 
 
-def make_parts(folder: Path, count: int, seed: int) -> list[tuple[Path, str]]:
+def make_parts(folder: Path, count: int, seed: int, family: str = "blocks") -> list[tuple[Path, str]]:
     from polycubenet.io import gmsh_session, load_part, quiet_stdout
 
     out = []
     k = 0
     while len(out) < count and k < 4 * count:
         rng = np.random.default_rng([seed, k])
-        path = folder / f"unseen_{seed}_{k:03d}.step"
+        path = folder / f"{family}_{seed}_{k:03d}.step"
         k += 1
         with gmsh_session() as gmsh:
             gmsh.model.add(path.stem)
             try:
-                desc = build_part(gmsh.model.occ, rng)
+                desc = build_part(gmsh.model.occ, rng, family)
                 with quiet_stdout():
                     gmsh.write(str(path))
             except Exception:  # noqa: BLE001 - a random build that OCC refuses: draw the next one
@@ -123,6 +141,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--count", type=int, default=16)
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--family", choices=("blocks", "mixed"), default="blocks",
+                    help="blocks: axis-aligned steps, bosses, holes, pockets, slots; mixed: also round bosses, "
+                         "slanted cuts and a random rotation")
     ap.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT))
     ap.add_argument("--steps", type=int, default=4)
     ap.add_argument("--mesh", action="store_true", help="also mesh the accepted parts through the learned polycube")
@@ -130,7 +151,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     folder = Path(tempfile.mkdtemp(prefix="unseen-parts-"))
-    made = make_parts(folder, args.count, args.seed)
+    made = make_parts(folder, args.count, args.seed, args.family)
     rows, _ = part_rows(args.checkpoint, [p for p, _ in made], 4096, args.steps)
     for r, (_, desc) in zip(rows, made):
         r["shape"] = desc
@@ -147,7 +168,7 @@ def main(argv=None) -> int:
           f"example parts: {ex_acc}/{len(ex_rows)} ({ex_acc / max(1, len(ex_rows)):.0%})")
     if meshed:
         print(f"unseen parts meshed valid through the learned polycube: {sum(v for v, _ in meshed.values())}/{len(rows)}")
-    write_json(args.json, {"checkpoint": args.checkpoint, "seed": args.seed, "count": len(rows), "steps": args.steps,
+    write_json(args.json, {"checkpoint": args.checkpoint, "seed": args.seed, "family": args.family, "count": len(rows), "steps": args.steps,
                            "accepted": acc, "examples_accepted": ex_acc, "examples": len(ex_rows),
                            "meshed_valid": sum(v for v, _ in meshed.values()) if meshed else None,
                            "rows": rows, "example_rows": ex_rows,
