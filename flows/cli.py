@@ -146,7 +146,7 @@ class _NoHook:
 
 
 def _run_with_progress(fn, total: int, desc: str):
-    from . import mesh_library as ml
+    from flows import mesh_library as ml
 
     bar = _Bar(total, desc)
     ml.PROGRESS_HOOKS.append(bar)
@@ -207,24 +207,24 @@ def main(argv: list[str] | None = None) -> int:
         print(f"polycubenet: {exc}", file=sys.stderr)
         return EXIT_USAGE
 
-    from .runners import make_runner
+    from flows.runners import make_runner
 
     try:
         if a.command == "mesh":
-            from .mesh_library import mesh_library
+            from flows.mesh_library import mesh_library
 
             flow = mesh_library.with_options(task_runner=make_runner(a.workers, a.dask_address, a.runner, a.worker_memory))
             _run_with_progress(lambda: flow(inputs=[str(p) for p in parts], out=a.out, **kw), len(parts), "mesh")
             _print_summary(a.out)
         elif a.command == "retry":
-            from .retry_failed import retry_failed
+            from flows.retry_failed import retry_failed
 
             n = sum(r["status"] == "failed" for r in library.read_manifest(a.out)["parts"])
             _run_with_progress(lambda: retry_failed(out=a.out, workers=a.workers, dask_address=a.dask_address,
                                                     runner=a.runner), n, "retry")
             _print_summary(a.out)
         elif a.command == "scan":
-            from .scan_drops import changed_parts, scan_drops
+            from flows.scan_drops import changed_parts, scan_drops
 
             new, changed = changed_parts(a.drop, a.out)
             print(f"{a.drop}: {len(new)} new, {len(changed)} changed parts")
@@ -236,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
                     dask_address=a.dask_address, runner=a.runner, mesh_options=opts), len(new) + len(changed), "scan")
                 _print_summary(a.out)
         elif a.command == "train":
-            from .train import train
+            from flows.train import train
 
             res = train(data=a.data, run=a.run, publish_to=a.publish, count=a.count, eval_count=a.eval_count,
                         steps=a.steps, preset=a.preset, batch=a.batch, points=a.train_points, gpus=a.gpus,

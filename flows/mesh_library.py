@@ -42,7 +42,7 @@ from polycubenet.policy import leaves_source, source_names
 from tasks import mesh as T
 from tasks.common import results_dir
 
-from .runners import dask_runner, gpu_workers, prepare_dask
+from flows.runners import dask_runner, gpu_workers, prepare_dask
 
 #: callables ``hook(event: dict)`` called in the flow's process as parts finish (the CLI's progress bar)
 PROGRESS_HOOKS: list[Callable[[dict], None]] = []

@@ -15,8 +15,8 @@ from prefect import flow, get_run_logger
 
 from polycubenet import library
 
-from .mesh_library import mesh_library
-from .runners import make_runner
+from flows.mesh_library import mesh_library
+from flows.runners import make_runner
 
 #: manifest parameters that are mesh_library arguments
 _PASSED = ("formats", "polycube", "fallback", "checkpoint", "steps", "work", "load_kw")

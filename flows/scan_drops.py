@@ -13,8 +13,8 @@ from prefect import flow, get_run_logger
 
 from polycubenet import library
 
-from .mesh_library import mesh_library
-from .runners import make_runner
+from flows.mesh_library import mesh_library
+from flows.runners import make_runner
 
 
 def changed_parts(drop: list[str] | str, out: str) -> tuple[list[str], list[str]]:
