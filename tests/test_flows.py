@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -717,3 +718,58 @@ def test_real_dask_cluster_survives_a_killed_worker(prefect_harness, tmp_path):
             if p.poll() is None:
                 p.kill()
             p.wait(timeout=30)
+
+
+@pytest.mark.slow
+def test_cli_batch_of_bad_and_awkward_files_gives_one_clear_row_each(prefect_harness, part_lib, tmp_path, capsys):
+    """The whole bad-input corpus (every file that needs no special load option), plus parts a user
+    expects to mesh -- two synthetic parts, a tet mesh, a STEP of two touching solids, an inside-out and
+    an unwelded (duplicate-vertex) surface -- in one CLI batch: exit 0, one manifest row per file, a named error (never a
+    traceback) for each bad file, a valid mesh for each good one."""
+    import bad_inputs
+    import meshio
+
+    from flows.cli import main
+    from polycubenet.io import gmsh_session
+
+    drop = tmp_path / "drop"
+    # (a file that does not exist is a usage error of the command, tested elsewhere)
+    bad = [p for p, _, _ in bad_inputs.make_corpus(drop / "bad") if not bad_inputs.load_kwargs(p) and p.exists()]
+    good = [shutil.copy(part_lib / f"synth-{s}.stl", drop / f"synth-{s}.stl") for s in GOOD]
+    with gmsh_session() as gmsh:
+        gmsh.model.add("tets")
+        gmsh.model.occ.addBox(0, 0, 0, 40, 20, 10)
+        gmsh.model.occ.synchronize()
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 5.0)
+        gmsh.model.mesh.generate(3)
+        gmsh.write(str(drop / "tet_box.msh"))
+        gmsh.model.remove()
+        gmsh.model.add("touching")
+        gmsh.model.occ.addBox(0, 0, 0, 30, 20, 10)
+        gmsh.model.occ.addBox(30, 0, 0, 20, 20, 25)
+        gmsh.model.occ.synchronize()
+        gmsh.write(str(drop / "two_solids.step"))
+        gmsh.model.remove()
+    m = meshio.read(drop / "tet_box.msh")
+    meshio.Mesh(m.points, [("tetra", m.cells_dict["tetra"])]).write(drop / "tet_box.mesh")
+    (drop / "tet_box.msh").unlink()
+    good += [drop / "tet_box.mesh", drop / "two_solids.step"]
+    repair_dir = drop / "repairable"
+    repairable = {p.name: p for p, _, _ in bad_inputs.make_repairable(repair_dir)}
+    good += [repairable["inside_out.stl"], repairable["duplicate_vertices.obj"]]
+    files = [str(p) for p in bad + good]
+    out = tmp_path / "out"
+    rc = main(["mesh", *files, "-o", str(out), "--polycube", "classical", "--runner", "threads", "--workers", "2",
+               "--points", "2048", "--polycube-points", "4096", "--hexes", "600"])
+    text = capsys.readouterr()
+    assert rc == 0
+    assert "Traceback" not in text.out + text.err
+    rows = library.read_manifest(out)["parts"]
+    assert len(rows) == len(files)
+    by_path = {Path(r["path"]).resolve(): r for r in rows}
+    for p in bad:
+        r = by_path[Path(p).resolve()]
+        assert r["status"] == "failed" and re.match(r"^[A-Za-z]+Error: ", r["error"]), (p.name, r["error"])
+    for p in good:
+        r = by_path[Path(p).resolve()]
+        assert r["status"] == "meshed" and r["quality"]["valid"], (Path(p).name, r["error"], r["quality"])
