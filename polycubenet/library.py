@@ -80,10 +80,10 @@ def discover(inputs: Iterable[str | os.PathLike], *, prefer_cad: bool = True,
     """Part files named by ``inputs``: files, folders (searched recursively) and glob patterns.
 
     Only the suffixes in :data:`PART_SUFFIXES` are kept from folders and globs (a file named
-    explicitly is kept whatever its suffix, so that ``load_part`` reports it); nothing under
+    explicitly is always kept, whatever its suffix, so that ``load_part`` reports it); nothing under
     an ``exclude`` folder is kept from a folder or glob (a run's own output folder inside its
     input: its hex meshes are volume meshes too).  With ``prefer_cad``, when one stem exists in
-    several forms in the same folder only the most exact is meshed: CAD (STEP/IGES), then a
+    several forms in the same folder (found through a folder or a glob) only the most exact is meshed: CAD (STEP/IGES), then a
     surface mesh, then a volume mesh.  Sorted, without duplicates.  Raises
     ``FileNotFoundError`` for an input that is neither a file, a folder nor a pattern that
     matches something.
@@ -97,13 +97,14 @@ def discover(inputs: Iterable[str | os.PathLike], *, prefer_cad: bool = True,
         return not any(r == e or e in r.parents for e in skip)
 
     found: list[Path] = []
+    named: list[Path] = []  # files named explicitly: always kept
     for item in inputs:
         s = str(item)
         p = Path(s)
         if p.is_dir():
             found += [q for q in sorted(p.rglob("*")) if kept(q)]
         elif p.is_file():
-            found.append(p)
+            named.append(p)
         elif glob.has_magic(s):
             matches = [Path(m) for m in sorted(glob.glob(s, recursive=True))]
             found += [q for q in matches if kept(q)]
@@ -120,17 +121,33 @@ def discover(inputs: Iterable[str | os.PathLike], *, prefer_cad: bool = True,
             k = (q.parent, q.stem)
             best[k] = min(best.get(k, 3), rank(q))
         found = [q for q in found if rank(q) == best[(q.parent, q.stem)]]
-    return sorted(dict.fromkeys(q.resolve() for q in found))
+    return sorted(dict.fromkeys(q.resolve() for q in found + named))
 
 
 def part_names(paths: list[Path], hashes: list[str]) -> list[str]:
-    """Output folder name of each part: its stem, with 8 hash characters added to every stem
-    that two different parts share (``bracket.step`` and ``sub/bracket.stl``)."""
-    stems = [p.stem for p in paths]
-    count: dict[str, set] = {}
-    for s, h in zip(stems, hashes):
-        count.setdefault(s, set()).add(h)
-    return [s if len(count[s]) == 1 else f"{s}-{h[:8]}" for s, h in zip(stems, hashes)]
+    """Output folder name of each part, one per path: its stem; where two paths share a stem, with 8 hash
+    characters added (``bracket.step`` and ``sub/bracket.stl``), then the extension where the contents are
+    the same too (four empty files ``x.stl``, ``x.obj``, ...), then a counter."""
+    names = [p.stem for p in paths]
+
+    def clashes(ns):
+        seen: dict = {}
+        for n in ns:
+            seen[n] = seen.get(n, 0) + 1
+        return {n for n, c in seen.items() if c > 1}
+
+    for extend in (lambda i: f"{names[i]}-{hashes[i][:8]}", lambda i: f"{names[i]}-{paths[i].suffix.lstrip('.').lower()}"):
+        dup = clashes(names)
+        if not dup:
+            break
+        names = [extend(i) if n in dup else n for i, n in enumerate(names)]
+    dup = clashes(names)
+    count: dict = {}
+    for i, n in enumerate(names):
+        if n in dup:
+            count[n] = count.get(n, 0) + 1
+            names[i] = f"{n}-{count[n]}"
+    return names
 
 
 # --------------------------------------------------------------------------- hashing and keys
