@@ -129,6 +129,20 @@ def edge_contacts(occ: np.ndarray) -> np.ndarray:
     return np.concatenate(out) if out else np.zeros((0, 4), dtype=np.int64)
 
 
+def edge_cells(axis: int, i: int, j: int, k: int) -> list[tuple[int, int, int]]:
+    """The 4 cells around the lattice edge along ``axis`` that starts at vertex ``(i, j, k)`` (a row of
+    :func:`edge_contacts`); some may lie outside the grid."""
+    b, c = (axis + 1) % 3, (axis + 2) % 3
+    v = (int(i), int(j), int(k))
+    cells = []
+    for db in (-1, 0):
+        for dc in (-1, 0):
+            cell = [0, 0, 0]
+            cell[axis], cell[b], cell[c] = v[axis], v[b] + db, v[c] + dc
+            cells.append(tuple(cell))
+    return cells
+
+
 def check_occupancy(occ: np.ndarray) -> str | None:
     """Why ``occ`` is not a valid polycube, or None when it is.
 

@@ -32,7 +32,8 @@ from scipy.spatial import cKDTree
 
 from .data import Polycube
 from .errors import PolycubeError
-from .polycube import check_occupancy, compress, edge_contacts, nonmanifold_vertices, polycube_surface, solid_genus
+from .polycube import (check_occupancy, compress, edge_cells, edge_contacts, nonmanifold_vertices, polycube_surface,
+                       solid_genus)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -304,14 +305,7 @@ def _repair(occ: np.ndarray, costs, max_flips: int) -> np.ndarray:
             break
         e = edge_contacts(occ)
         if len(e):
-            a, i, j, k = (int(x) for x in e[0])
-            b, c = (a + 1) % 3, (a + 2) % 3
-            cells = []
-            for db in (-1, 0):
-                for dc in (-1, 0):
-                    cell = [0, 0, 0]
-                    cell[a], cell[b], cell[c] = (i, j, k)[a], (i, j, k)[b] + db, (i, j, k)[c] + dc
-                    cells.append(tuple(cell))
+            cells = edge_cells(*(int(x) for x in e[0]))
         else:
             v = nonmanifold_vertices(occ)[0]
             cells = [tuple(int(v[d]) + o[d] for d in range(3)) for o in np.ndindex(2, 2, 2)]

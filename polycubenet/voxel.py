@@ -67,6 +67,7 @@ from .errors import PolycubeError
 from .frame import face_normals_areas
 from .polycube import (
     check_occupancy,
+    edge_cells,
     edge_contacts,
     nonmanifold_vertices,
     polycube_surface,
@@ -263,14 +264,7 @@ def repair_occupancy(occ: np.ndarray, frac: np.ndarray, rounds: int = 200) -> tu
         e = edge_contacts(occ)
         if len(e):
             for ax, i, j, k in e:
-                b, c = (ax + 1) % 3, (ax + 2) % 3
-                cells = []
-                for db in (-1, 0):
-                    for dc in (-1, 0):
-                        cell = [0, 0, 0]
-                        cell[ax], cell[b], cell[c] = (i, j, k)[ax], (i, j, k)[b] + db, (i, j, k)[c] + dc
-                        cells.append(tuple(cell))
-                if add_best(cells):
+                if add_best(edge_cells(ax, i, j, k)):
                     added += 1
                     changed = True
             continue
