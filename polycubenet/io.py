@@ -397,7 +397,7 @@ def part_from_arrays(
     # -- self-intersections (before components: overlapping shells are crossings, not parts) --
     crossing = self_intersecting_faces(v, f)
     if len(crossing):
-        tri_area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+        tri_area = _face_areas(v, f)
         share = float(tri_area[crossing].sum() / tri_area.sum())
         c = v[f[crossing[0]]].mean(axis=0)
         where_c = f"({c[0]:.4g}, {c[1]:.4g}, {c[2]:.4g})"
@@ -453,7 +453,7 @@ def part_from_arrays(
     n_edges = 3 * len(f) // 2
     euler = len(v) - n_edges + len(f)
     genus = (2 - euler) // 2
-    area = float(0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum())
+    area = float(_face_areas(v, f).sum())
     meta.update(
         genus=int(genus),
         area=area,
@@ -1254,8 +1254,7 @@ def _merge_vertices(v: np.ndarray, f: np.ndarray, eps: float, repairs: list[str]
 
 def _drop_degenerate_faces(v: np.ndarray, f: np.ndarray, min_area: float, repairs: list[str]) -> tuple[np.ndarray, int]:
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
-    double_area = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
-    bad = repeated | (0.5 * double_area <= min_area)
+    bad = repeated | (_face_areas(v, f) <= min_area)
     n = int(bad.sum())
     if n:
         repairs.append(f"dropped {n} degenerate faces (repeated vertex or zero area)")
@@ -1381,6 +1380,11 @@ def _orient(f: np.ndarray, topo: dict) -> tuple[np.ndarray | None, np.ndarray]:
     total = np.bincount(comp, minlength=n_comp)
     invert = flipped > total / 2  # flip the fewest faces in each component
     return comp, flip ^ invert[comp]
+
+
+def _face_areas(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Area of each triangle, ``(F,)``."""
+    return 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
 
 
 def _face_volumes(v: np.ndarray, f: np.ndarray) -> np.ndarray:
