@@ -40,6 +40,9 @@ ROWS: dict[str, list[str]] = {
     "anchored_v": ["--preset", "cpu-anchored", "--prediction", "v", "--schedule", "cosine_ztsnr"],
     # anchors that carry the part's normal (ModelConfig.anchor_normals)
     "anchored_vn": ["--preset", "cpu-anchored-normals", "--prediction", "v", "--schedule", "cosine_ztsnr"],
+    # timesteps drawn towards the noisy end, where a few-step sampler decides the shape
+    "anchored_vn_tbias3": ["--preset", "cpu-anchored-normals", "--prediction", "v", "--schedule", "cosine_ztsnr",
+                           "--t-bias", "3"],
 }
 
 
@@ -78,7 +81,7 @@ def run_row(name: str, args) -> dict:
         "row": name, "flags": extra, "steps": int(ck["step"]), "cpu_minutes": round(args.cpu_minutes, 1),
         "train_wall_s": round(train_wall, 1), "chamfer_median": ev["chamfer_median"],
         "exact": ev["exact_structure_rate"], "genus_match": ev["genus_match_rate"],
-        "refused": ev["extract_failed_rate"], "label_accuracy": ev.get("label_accuracy_median"),
+        "refused": ev["extract_failed_rate"], "same_cells": ev.get("same_cells_rate"), "label_accuracy": ev.get("label_accuracy_median"),
         "label_accuracy_part_normals": ev.get("label_accuracy_part_normals_median"), "n_generated": ev.get("n_generated"),
         "exact_genus_le2": sum(r["exact"] for r in low) / max(1, len(low)),
         "genus_match_le2": sum(r["genus_match"] for r in low) / max(1, len(low)),
@@ -121,11 +124,12 @@ def main(argv=None) -> int:
         rows = list(ex.map(lambda r: run_row(r, args), args.rows))
     identity = identity_chamfer(args.heldout, args.count)
     print(f"{'row':<10} {'CPU min':>7} {'steps':>6} {'Chamfer':>8} {'exact':>6} {'genus':>6} {'refused':>7} "
-          f"{'exact g<=2':>10} {'genus g<=2':>10} {'labels':>6}")
+          f"{'exact g<=2':>10} {'genus g<=2':>10} {'labels':>6} {'same cells':>10}")
     for r in rows:
         print(f"{r['row']:<10} {r['cpu_minutes']:>7.1f} {r['steps']:>6} {r['chamfer_median']:>8.4f} {r['exact']:>6.2f} "
               f"{r['genus_match']:>6.2f} {r['refused']:>7.2f} {r['exact_genus_le2']:>10.2f} {r['genus_match_le2']:>10.2f} "
-              f"{r['label_accuracy'] if r['label_accuracy'] is not None else float('nan'):>6.3f}")
+              f"{r['label_accuracy'] if r['label_accuracy'] is not None else float('nan'):>6.3f} "
+              f"{r['same_cells'] if r.get('same_cells') is not None else float('nan'):>10.2f}")
     print(f"{'identity':<10} {'':>7} {'':>6} {identity:>8.4f}   (the part's own samples as the polycube cloud)")
     snap = rows[0].get("label_accuracy_part_normals")
     if snap is not None:

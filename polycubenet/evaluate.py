@@ -34,7 +34,7 @@ from .atomic import write_json
 from .cleanup import remove_outliers
 from .errors import PolycubeError
 from .inference import generate, load_model
-from .polycube import same_structure
+from .polycube import plane_offset, same_structure
 from .structure import extract
 from .synth.shards import list_shards, load_shard
 
@@ -103,9 +103,23 @@ def _pairs(directory: str | Path, count: int):
             n += 1
 
 
+def _identity_structure(s, k: int, gt) -> dict:
+    """The structure extracted from pair ``k``'s own condition samples and normals (no model):
+    how much of the exact-structure rate a model gets for free."""
+    P = np.asarray(s["cond_points"][k], float)
+    N = np.asarray(s["cond_normals"][k], float)
+    try:
+        P, N, _ = remove_outliers(P, N)
+        poly = extract(P, N, genus=None, part="identity")
+    except PolycubeError:
+        return {"exact_identity": False, "plane_offset_identity": None}
+    return {"exact_identity": bool(poly.meta["genus"] == int(s["genus"][k]) and same_structure(poly, gt, atol=0.02)),
+            "plane_offset_identity": plane_offset(poly, gt)}
+
+
 def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 8192, n_in: int | None = None,
              steps: int | None = 64, seed: int = 0, structure: bool = True, batch: int = 8, device: str | None = None,
-             progress: bool = True, keep_clouds: int = 0) -> dict:
+             progress: bool = True, keep_clouds: int = 0, identity: bool = False) -> dict:
     """Metrics of ``checkpoint`` on the first ``count`` pairs of the held-out shards ``data``.
 
     ``keep_clouds`` > 0 also returns ``clouds``: (condition, generated cloud, ground-truth
@@ -165,9 +179,13 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
                     row["genus_got"] = int(poly.meta["genus"])
                     row["genus_match"] = row["genus_got"] == row["genus"]
                     row["exact"] = row["genus_match"] and same_structure(poly, gt, atol=0.02)
+                    # the same cells with planes further than 0.02 away, or other cells
+                    row["plane_offset"] = plane_offset(poly, gt)
                     row["error"] = None
                 except PolycubeError as exc:
                     row.update(genus_got=None, genus_match=False, exact=False, error=str(exc))
+                if identity:  # the trivial reference: the part's own samples and normals as the cloud
+                    row.update(_identity_structure(s, k, gt))
             rows.append(row)
         if progress:
             done = len(rows)
@@ -199,6 +217,13 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
             out["genus_le2_pairs"] = len(low)
             out["exact_structure_rate_genus_le2"] = float(np.mean([r["exact"] for r in low]))
             out["genus_match_rate_genus_le2"] = float(np.mean([r["genus_match"] for r in low]))
+        offs = [r.get("plane_offset") for r in rows]
+        out["same_cells_rate"] = float(np.mean([o is not None for o in offs]))
+        out["plane_offset_median"] = (float(np.median([o for o in offs if o is not None]))
+                                      if any(o is not None for o in offs) else None)
+        if identity:
+            out["exact_structure_rate_identity"] = float(np.mean([r["exact_identity"] for r in rows]))
+            out["same_cells_rate_identity"] = float(np.mean([r["plane_offset_identity"] is not None for r in rows]))
         cats: dict = {}
         for r in rows:
             r["category"] = c = row_category(r)
@@ -225,13 +250,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-structure", action="store_true")
+    ap.add_argument("--identity", action="store_true",
+                    help="also extract each pair's own samples (the no-model reference for exact structure)")
     ap.add_argument("--device")
     ap.add_argument("--json", help="write the metrics here")
     ap.add_argument("--publish", help="also write the shipped checkpoint (EMA, float16, metrics) here")
     args = ap.parse_args(argv)
     res = evaluate(args.checkpoint, args.data, args.count, n_out=args.n_out, n_in=args.n_in,
                    steps=args.steps or None, seed=args.seed, structure=not args.no_structure, batch=args.batch,
-                   device=args.device)
+                   device=args.device, identity=args.identity)
     summary = {k: v for k, v in res.items() if k != "rows"}
     print(json.dumps(summary, indent=1))
     if args.json:

@@ -67,6 +67,7 @@ class TrainConfig:
     schedule: str = "cosine"  # cosine | cosine_ztsnr | linear
     min_snr: float = 0.0  # Min-SNR-gamma loss weighting (0: off)
     pairing: str = "random"  # random | ot (noise matched to the target points by assignment)
+    t_bias: float = 1.0  # > 1: timesteps drawn towards the noisy end (Diffusion.training_loss)
     max_genus: int = -1  # curriculum: train only on pairs of genus <= this (-1: all)
     reload_every: int = 0  # re-read the shard folder every this many steps (0: never), for shards still being written
 
@@ -345,7 +346,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
         gen = torch.Generator(device=dev).manual_seed(int(rng.integers(2**62)))
         model.train()
         loss, stats = diffusion.training_loss(net, x0, cond, loss=cfg.loss, generator=gen, autocast=autocast,
-                                              anchor=anchor)
+                                              anchor=anchor, t_bias=cfg.t_bias)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         gnorm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.clip))

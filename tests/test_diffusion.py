@@ -206,3 +206,23 @@ def test_recipe_options_train_and_sample(net, kw):
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in net.parameters())
     x = d.sample(net, cond, 16, steps=6, generator=torch.Generator().manual_seed(2))
     assert torch.isfinite(x).all() and float(x.abs().max()) <= 1.0 + 1e-5  # the last step returns the clipped x0
+
+
+def test_t_bias_draws_timesteps_towards_the_noisy_end():
+    """``t_bias`` 3 puts about 63 % of the draws in the last quarter of the schedule (uniform: 25 %),
+    where a few-step sampler takes its first step; 1 keeps the uniform draw."""
+    d = Diffusion(prediction="v", schedule="cosine_ztsnr")
+    seen = {}
+
+    def model(x_t, t, cond):
+        seen.setdefault("t", []).append(t.clone())
+        return torch.zeros_like(x_t)
+
+    x0, cond = torch.randn(4000, 2, 6), torch.randn(4000, 2, 3)
+    for bias in (1.0, 3.0):
+        seen.clear()
+        loss, _ = d.training_loss(model, x0, cond, generator=torch.Generator().manual_seed(0), t_bias=bias)
+        t = seen["t"][0].double()
+        assert torch.isfinite(loss) and t.min() >= 0 and t.max() <= d.T - 1
+        late = float((t >= 0.75 * d.T).double().mean())
+        assert abs(late - (0.25 if bias == 1.0 else 0.25 ** (1 / 3))) < 0.03, (bias, late)

@@ -110,3 +110,22 @@ def test_partition_size_controls():
     assert len(fine.hexes) > 20 * len(coarse.hexes)
     with pytest.raises(ValueError, match="not both"):
         partition(poly, target_size=0.1, target_hexes=10)
+
+
+def test_plane_offset_tells_displaced_planes_from_other_cells():
+    """The evaluation's split of "other structure": the same cells with planes moved (their largest
+    move), or other cells (None); an extra plane between equal slabs changes nothing."""
+    from polycubenet.polycube import plane_offset, same_structure
+
+    occ = np.zeros((2, 1, 2), bool)
+    occ[:, 0, 0] = True
+    occ[0, 0, 1] = True  # an L
+    a = Polycube(np.array([-0.4, 0.0, 0.4]), np.array([-0.15, 0.15]), np.array([-0.2, 0.0, 0.2]), occ)
+    moved = Polycube(a.xs + np.array([0.0, 0.03, 0.0]), a.ys, a.zs - 0.01, occ)
+    assert plane_offset(a, moved) == pytest.approx(0.03)
+    assert not same_structure(a, moved, atol=0.02) and same_structure(a, moved, atol=0.04)
+    split = Polycube(np.array([-0.4, -0.2, 0.0, 0.4]), a.ys, a.zs, np.concatenate([occ[:1], occ], axis=0))
+    assert plane_offset(a, split) == pytest.approx(0.0)
+    other = occ.copy()
+    other[1, 0, 1] = True  # the full block
+    assert plane_offset(a, Polycube(a.xs, a.ys, a.zs, other)) is None

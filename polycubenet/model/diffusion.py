@@ -174,15 +174,25 @@ class Diffusion:
         generator: torch.Generator | None = None,
         autocast: Callable | None = None,
         anchor: torch.Tensor | None = None,
+        t_bias: float = 1.0,
     ) -> tuple[torch.Tensor, dict]:
         """One batch: random t and noise, predict the noise, the hybrid (or l2) loss.
+
+        ``t_bias`` > 1 draws t towards the noisy end: ``t = T (1 - (1 - u)^t_bias)`` with u uniform
+        (1: uniform, the paper's).  A model sampled in a few DDIM steps from pure noise spends its
+        first step, the one that decides the shape, at t = T - 1, where the uniform draw puts
+        few samples.
 
         Returns ``(loss, stats)`` where ``stats`` holds the float values of the L2 and L1
         terms and the weight used.
         """
         B = x0.shape[0]
         dev = x0.device
-        t = torch.randint(0, self.T, (B,), device=dev, generator=generator)
+        if t_bias == 1.0:
+            t = torch.randint(0, self.T, (B,), device=dev, generator=generator)
+        else:
+            u = torch.rand((B,), device=dev, generator=generator, dtype=torch.float64)
+            t = (self.T * (1.0 - (1.0 - u) ** t_bias)).long().clamp_(0, self.T - 1)
         noise = torch.randn(x0.shape, device=dev, dtype=x0.dtype, generator=generator)
         if self.pairing == "ot":
             noise = ot_pair_noise(x0, noise)
