@@ -17,6 +17,13 @@ Two pictures:
   A pyvista failure (an exception or a blank image) falls back to matplotlib.
   The environment variable ``POLYCUBENET_RENDER_BACKEND`` overrides ``"auto"``.
 
+  One VTK render at a time per process (``_VTK_LOCK``): two threads rendering off-screen
+  at once through Mesa corrupt the C heap (``munmap_chunk(): invalid pointer``, or a
+  segmentation fault then or only later, when the interpreter frees memory at exit).  That
+  was the intermittent exit-time crash of the test suite, whose flows export two parts at
+  once in a thread pool.  pyvista's lazy imports are not thread-safe either, so they are
+  made under the same lock.
+
 Colours: SJ in [0, 1] on a colour map; SJ < 0 (inverted) is drawn red.
 """
 
@@ -24,6 +31,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +44,8 @@ log = logging.getLogger(__name__)
 #: colour map of the scaled Jacobian in [0, 1]; values below 0 use _BELOW
 _CMAP = "viridis"
 _BELOW = "red"
+#: VTK off-screen rendering (and pyvista's lazy imports) is not thread-safe: one render at a time
+_VTK_LOCK = threading.Lock()
 
 
 def _figure(figsize):
@@ -114,6 +124,11 @@ def _cut_mask(points, hexes, axis, centre) -> np.ndarray:
 
 
 def _render_pyvista(points, hexes, sj, path: Path, title: str | None, window_size) -> None:
+    with _VTK_LOCK:
+        _render_pyvista_locked(points, hexes, sj, path, title, window_size)
+
+
+def _render_pyvista_locked(points, hexes, sj, path: Path, title: str | None, window_size) -> None:
     os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     import pyvista as pv
 

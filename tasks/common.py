@@ -17,7 +17,6 @@
 from __future__ import annotations
 
 import dataclasses
-import threading
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -108,17 +107,3 @@ def results_dir(work: str | Path) -> Path:
     """Where the flows keep Prefect's cached stage records: next to the stage files, so
     that a work folder on shared storage carries its cache with it."""
     return Path(work) / ".prefect-results"
-
-
-_IMPORT_LOCK = threading.Lock()
-
-
-def warm_render_imports() -> None:
-    """Import pyvista once under a lock: its lazy imports are not thread-safe, and two
-    export tasks rendering at once in a thread pool would otherwise fall back to matplotlib.
-    (Module-level, so the tasks that call it pickle it by reference for Dask.)"""
-    with _IMPORT_LOCK:
-        try:
-            import pyvista  # noqa: F401
-        except ImportError:
-            pass

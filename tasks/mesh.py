@@ -17,7 +17,7 @@ from prefect.cache_policies import NO_CACHE
 from polycubenet import library
 from polycubenet.pipeline import PipelineConfig
 
-from .common import RETRIES, retry_transient, stage_record, task_options, warm_render_imports
+from .common import RETRIES, retry_transient, stage_record, task_options
 
 
 @task(**task_options("load-sample"))
@@ -84,7 +84,6 @@ def partition_pullback(extracted: str, corr: str, loaded: str, dest: str, key: s
 def report_export(hexc: str, extracted: str, loaded: str, out_dir: str, key: str, formats: list[str],
                   name: str = "") -> dict:
     """Quality report against the input surface and the output files."""
-    warm_render_imports()
     rec = stage_record("export", lambda: library.report_export(hexc, extracted, loaded, out_dir, formats, key=key, name=name or None),
                        done=lambda: library.load_json(Path(out_dir) / "result.json").get("key") == key)
     return {**rec, "path": str(out_dir)}

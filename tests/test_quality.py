@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -261,3 +262,36 @@ def test_matplotlib_fallback_renders(tmp_path):
     out = tmp_path / "p.png"
     assert render_hex_quality(m.points, m.hexes, sj, out, backend="matplotlib", window_size=(500, 300)) == "matplotlib"
     assert _is_png(out) and _png_not_blank(out)
+
+
+_RENDER_IN_THREADS = """
+import sys
+from concurrent.futures import ThreadPoolExecutor
+import numpy as np
+from polycubenet.render import render_hex_quality
+pts = np.array([[0,0,0],[1,0,0],[1,1,0],[0,1,0],[0,0,1],[1,0,1],[1,1,1],[0,1,1]], float)
+def job(i):
+    return render_hex_quality(pts + i, np.arange(8)[None], np.array([0.5]), f"{sys.argv[1]}/r{i}.png", backend="pyvista")
+with ThreadPoolExecutor(4) as ex:
+    print(" ".join(ex.map(job, range(8))))
+"""
+
+
+def test_renders_from_several_threads_at_once_neither_crash_nor_corrupt_the_process(tmp_path):
+    """Export tasks render previews from a thread pool.  VTK off-screen rendering from two threads at
+    once corrupted the C heap (an abort, or a segmentation fault then or at interpreter exit: the
+    test suite's intermittent exit-time crash); each try runs in its own process with an empty
+    shader cache (the first-run state where it crashed most), and must exit 0 with every picture
+    rendered by VTK (pyvista's lazy imports also raced)."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("pyvista")
+    for k in range(3):
+        cache = tmp_path / f"cache{k}"
+        proc = subprocess.run([sys.executable, "-c", _RENDER_IN_THREADS, str(tmp_path)], capture_output=True,
+                              text=True, timeout=300, env={**os.environ, "XDG_CACHE_HOME": str(cache)})
+        assert proc.returncode == 0, (proc.returncode, proc.stderr[-2000:])
+        assert proc.stdout.split() == ["pyvista"] * 8, proc.stdout + proc.stderr[-2000:]
+    for i in range(8):
+        assert (tmp_path / f"r{i}.png").stat().st_size > 0
