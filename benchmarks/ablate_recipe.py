@@ -43,6 +43,9 @@ ROWS: dict[str, list[str]] = {
     # timesteps drawn towards the noisy end, where a few-step sampler decides the shape
     "anchored_vn_tbias3": ["--preset", "cpu-anchored-normals", "--prediction", "v", "--schedule", "cosine_ztsnr",
                            "--t-bias", "3"],
+    # displacements 4x larger in network units (gain 32): about the scale of the unit normals beside them
+    "anchored_vn_gain32": ["--preset", "cpu-anchored-normals", "--prediction", "v", "--schedule", "cosine_ztsnr",
+                           "--anchor-gain", "32"],
 }
 
 

@@ -67,6 +67,7 @@ class TrainConfig:
     schedule: str = "cosine"  # cosine | cosine_ztsnr | linear
     min_snr: float = 0.0  # Min-SNR-gamma loss weighting (0: off)
     pairing: str = "random"  # random | ot (noise matched to the target points by assignment)
+    anchor_gain: float = 0.0  # > 0: the anchored model's displacement gain (ModelConfig.anchor_gain; 0: the preset's)
     t_bias: float = 1.0  # > 1: timesteps drawn towards the noisy end (Diffusion.training_loss)
     max_genus: int = -1  # curriculum: train only on pairs of genus <= this (-1: all)
     reload_every: int = 0  # re-read the shard folder every this many steps (0: never), for shards still being written
@@ -264,6 +265,8 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
     if rank == 0:
         run.mkdir(parents=True, exist_ok=True)
     mcfg = model_config or preset(cfg.preset)
+    if cfg.anchor_gain > 0:  # the scale displacements have in network units, next to unit normals and noise
+        mcfg = dataclasses.replace(mcfg, anchor_gain=float(cfg.anchor_gain))
     diffusion = diffusion_of(cfg)
     torch.manual_seed(cfg.seed)
     model = PolycubeNet(mcfg).to(dev)

@@ -31,7 +31,9 @@ d, tc = s.get("diffusion") or {}, s.get("train_config") or {}
 flags = ["--preset", tc.get("preset", "cpu"),
          "--prediction", d.get("prediction", "eps"), "--schedule", d.get("schedule", "cosine"),
          "--pairing", d.get("pairing", "random"), "--min-snr", str(d.get("min_snr") or 0),
-         "--points", str(tc.get("points", 512)), "--batch", str(tc.get("batch", 12))]
+         "--points", str(tc.get("points", 512)), "--batch", str(tc.get("batch", 12)),
+         "--anchor-gain", str((s.get("model_config") or {}).get("anchor_gain", 0.0)),
+         "--t-bias", str(tc.get("t_bias", 1.0))]
 print(" ".join(flags))
 EOF
 )

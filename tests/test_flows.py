@@ -380,12 +380,15 @@ def test_sigkill_mid_batch_then_rerun(prefect_harness, part_lib, tmp_path, monke
             assert all(z[k].size >= 0 for k in z.files)
     counts_before = {s: len(list(work.rglob(f"{s}-*.npz"))) for s in ("load_sample", "polycube", "extract", "register", "pullback")}
 
+    keys_before = {n: json.loads((out / n / "result.json").read_text()).get("key") for n in finished}
     calls = Counter(monkeypatch)
     state, res = _mesh([drop], out, runner=_runner("threads", 1))  # one thread: twin and synth-9005 never race
     assert state.is_completed() and res["counts"] == {"meshed": 3, "failed": 0}
     rows = _rows(res)
-    for name in finished:
-        assert rows[name]["computed"] == []  # nothing that finished is recomputed
+    for name in finished:  # nothing that finished is recomputed
+        assert rows[name]["computed"] == [], (name, finished, counts_before, calls.calls,
+                                              {n: (r["computed"], r["keys"].get("export")) for n, r in rows.items()},
+                                              keys_before)
     # twin.stl has synth-9005's bytes: its stages share the keys, so only its export is its own
     fn_of = {"load_sample": "load_sample", "polycube": "polycube_cloud", "extract": "cleanup_extract",
              "register": "register", "pullback": "partition_pullback"}
