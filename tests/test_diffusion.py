@@ -43,6 +43,7 @@ def test_timestep_pairs():
     p10 = d.timestep_pairs(steps=10)
     assert len(p10) == 10 and p10[0][0] == 1023 and p10[-1] == (0, -1)
     assert all(a > b for a, b in p10)
+    assert d.timestep_pairs(steps=1) == [(1023, -1)]  # one step starts from pure noise, not from t = 0
     assert [a for a, _ in d.timestep_pairs(stride=1)] == list(range(1023, -1, -1))
     with pytest.raises(ValueError):
         d.timestep_pairs(steps=0)

@@ -238,7 +238,8 @@ class Diffusion:
         if steps is not None:
             if not 1 <= steps <= self.T:
                 raise ValueError(f"steps must be in 1..{self.T}, got {steps}")
-            ts = np.unique(np.round(np.linspace(0, self.T - 1, steps)).astype(int))
+            # from T-1 (pure noise under zero terminal SNR) down: one step is a single jump from T-1 to x_0
+            ts = np.unique(np.round(np.linspace(self.T - 1, 0, steps)).astype(int))
         else:
             if stride < 1:
                 raise ValueError(f"stride must be >= 1, got {stride}")
