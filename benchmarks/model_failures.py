@@ -122,7 +122,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     ev = evaluate(args.checkpoint, args.heldout, args.count, n_out=args.n_out, steps=args.steps, device="cpu",
-                  keep_clouds=args.show)
+                  keep_clouds=args.show, identity=True)
     parts = sorted(Path(args.parts).glob("*.stl"))
     prow, pclouds = part_rows(args.checkpoint, parts, args.n_out, args.steps)
 
@@ -138,7 +138,9 @@ def main(argv=None) -> int:
     low = [r for r in ev["rows"] if r["genus"] <= 2]
     low_counts = table(low, "held-out pairs of genus <= 2") if low else {}
     part_counts = table(prow, "example parts")
-    print(f"\nheld-out: exact structure {ev['exact_structure_rate']:.0%}, genus match {ev['genus_match_rate']:.0%}, "
+    print(f"\nheld-out: exact structure {ev['exact_structure_rate']:.0%} (no model, the part's own samples: "
+          f"{ev['exact_structure_rate_identity']:.0%}), same cells {ev['same_cells_rate']:.0%}, "
+          f"genus match {ev['genus_match_rate']:.0%}, "
           f"median Chamfer {ev['chamfer_median']:.4f}; parts accepted {sum(r['accepted'] for r in prow)}/{len(prow)}")
     if ev.get("label_accuracy_median") is not None:
         print(f"labels right (axis and sign of the generated normal, median over pairs): {ev['label_accuracy_median']:.3f}; "
@@ -186,6 +188,7 @@ def main(argv=None) -> int:
                  "anchored": bool((meta.get("model_config") or {}).get("anchored")),
                  "chamfer_median": ev["chamfer_median"], "chamfer_identity": ev.get("chamfer_identity_median"),
                  "exact": ev["exact_structure_rate"],
+                 "exact_identity": ev.get("exact_structure_rate_identity"), "same_cells": ev.get("same_cells_rate"),
                  "genus_match": ev["genus_match_rate"],
                  "exact_genus_le2": ev.get("exact_structure_rate_genus_le2"),
                  "genus_match_genus_le2": ev.get("genus_match_rate_genus_le2"),
