@@ -103,18 +103,17 @@ def _pairs(directory: str | Path, count: int):
             n += 1
 
 
-def _identity_structure(s, k: int, gt) -> dict:
-    """The structure extracted from pair ``k``'s own condition samples and normals (no model):
-    how much of the exact-structure rate a model gets for free."""
-    P = np.asarray(s["cond_points"][k], float)
-    N = np.asarray(s["cond_normals"][k], float)
+def _structure(P: np.ndarray, N: np.ndarray, gt, genus: int, part: str) -> dict:
+    """Outlier filter + extraction of a cloud, compared with the ground-truth polycube ``gt``."""
     try:
         P, N, _ = remove_outliers(P, N)
-        poly = extract(P, N, genus=None, part="identity")
-    except PolycubeError:
-        return {"exact_identity": False, "plane_offset_identity": None}
-    return {"exact_identity": bool(poly.meta["genus"] == int(s["genus"][k]) and same_structure(poly, gt, atol=0.02)),
-            "plane_offset_identity": plane_offset(poly, gt)}
+        poly = extract(P, N, genus=None, part=part)
+    except PolycubeError as exc:
+        return {"genus_got": None, "genus_match": False, "exact": False, "plane_offset": None, "error": str(exc)}
+    got = int(poly.meta["genus"])
+    # plane_offset: the same cells with planes further than 0.02 away, or (None) other cells
+    return {"genus_got": got, "genus_match": got == genus, "exact": got == genus and same_structure(poly, gt, atol=0.02),
+            "plane_offset": plane_offset(poly, gt), "error": None}
 
 
 def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 8192, n_in: int | None = None,
@@ -173,19 +172,11 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
                                                        s["target_normals"][k])
             if structure:
                 gt = s.polycube(k)
-                try:
-                    P, N, _ = remove_outliers(cloud[:, :3].astype(float), cloud[:, 3:].astype(float))
-                    poly = extract(P, N, genus=None, part=f"pair {row['seed']}")
-                    row["genus_got"] = int(poly.meta["genus"])
-                    row["genus_match"] = row["genus_got"] == row["genus"]
-                    row["exact"] = row["genus_match"] and same_structure(poly, gt, atol=0.02)
-                    # the same cells with planes further than 0.02 away, or other cells
-                    row["plane_offset"] = plane_offset(poly, gt)
-                    row["error"] = None
-                except PolycubeError as exc:
-                    row.update(genus_got=None, genus_match=False, exact=False, error=str(exc))
-                if identity:  # the trivial reference: the part's own samples and normals as the cloud
-                    row.update(_identity_structure(s, k, gt))
+                row.update(_structure(cloud[:, :3].astype(float), cloud[:, 3:].astype(float), gt, row["genus"],
+                                      f"pair {row['seed']}"))
+                if identity:  # the trivial reference: the part's own samples and normals as the cloud (no model)
+                    ref = _structure(cp_all, np.asarray(s["cond_normals"][k], float), gt, row["genus"], "identity")
+                    row.update(exact_identity=ref["exact"], plane_offset_identity=ref["plane_offset"])
             rows.append(row)
         if progress:
             done = len(rows)
