@@ -545,21 +545,25 @@ def compress(coords: list[np.ndarray], occ: np.ndarray) -> tuple[list[np.ndarray
     return coords, occ
 
 
-def plane_offset(got, truth) -> float | None:
-    """The largest distance between corresponding planes of two polycubes of the same minimal
-    grid topology and occupancy, or ``None`` when the topology or occupancy differs: it tells a
-    polycube whose cells are right but whose planes are displaced from one with other cells."""
+def _matching_grids(got, truth) -> tuple[list, list] | None:
+    """The minimal grids of two polycubes when their topology and occupancy agree, else ``None``."""
     ga, oa = compress([got.xs, got.ys, got.zs], got.occupancy)
     gb, ob = compress([truth.xs, truth.ys, truth.zs], truth.occupancy)
     if oa.shape != ob.shape or not bool((oa == ob).all()):
         return None
-    return float(max(np.abs(a - b).max() for a, b in zip(ga, gb)))
+    return ga, gb
+
+
+def plane_offset(got, truth) -> float | None:
+    """The largest distance between corresponding planes of two polycubes of the same minimal
+    grid topology and occupancy, or ``None`` when the topology or occupancy differs: it tells a
+    polycube whose cells are right but whose planes are displaced from one with other cells."""
+    grids = _matching_grids(got, truth)
+    return None if grids is None else float(max(np.abs(a - b).max() for a, b in zip(*grids)))
 
 
 def same_structure(got, truth, atol: float) -> bool:
     """Whether two polycubes (objects with ``xs, ys, zs, occupancy``) have the same structure:
     the same minimal grid topology and occupancy, with plane positions within ``atol``."""
-    ga, oa = compress([got.xs, got.ys, got.zs], got.occupancy)
-    gb, ob = compress([truth.xs, truth.ys, truth.zs], truth.occupancy)
-    return (oa.shape == ob.shape and bool((oa == ob).all())
-            and all(np.allclose(a, b, atol=atol) for a, b in zip(ga, gb)))
+    grids = _matching_grids(got, truth)
+    return grids is not None and all(np.allclose(a, b, atol=atol) for a, b in zip(*grids))
