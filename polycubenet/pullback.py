@@ -168,9 +168,11 @@ class PullbackConfig:
         Pull of a released node towards where it was (a released corner may cut the part's
         corner, which costs Hausdorff distance, but only where a hex would be poor otherwise).
     release_max_deviation : float
-        When the mesh was already valid, the release is undone if it moved the boundary
-        farther from the part (:func:`boundary_deviation`, relative to the diagonal) than
-        this and than 1.1 x before: validity first, then fidelity, then the minimum SJ.
+        When the mesh was already valid, the release is undone if, after the final coverage
+        fit (step 4c, which wins back most of what a release costs), the boundary is farther
+        from the part (:func:`boundary_deviation`, relative to the diagonal) than this and
+        than 1.1 x before the release: validity first, then fidelity, then the minimum SJ.
+        The undone state gets the final coverage fit instead.
     smoothing_sweeps : int
         Guarded Laplacian sweeps (step 5).
     smoothing_step : float
@@ -226,8 +228,8 @@ class PullbackConfig:
     untangle_only_before_pillow: bool = True
     pillow_thickness: float = 0.35
     pillow_fix_boundary: bool = True
-    release_sj: float = 0.1
-    release_rounds: int = 2
+    release_sj: float = 0.35
+    release_rounds: int = 3
     release_regularisation: float = 0.03
     release_max_deviation: float = 0.8 * tol.HAUSDORFF_REL_MAX
     smoothing_sweeps: int = 5
@@ -1681,16 +1683,17 @@ def _pull_back_once(
     loc[bs.nodes] = np.arange(len(bs.nodes))
     released = 0
     reverted = False
+    # the state before any release, kept while it is valid: the release is judged after step 4c
+    unreleased = None
     for _ in range(config.release_rounds):
         sj_before = scaled_jacobian_and_degenerate(X, hexes)
         valid_before = bool(sj_before[0].min() > 0 and not sj_before[1].any())
         if valid_before and sj_before[0].min() >= config.release_sj:
             break
-        X_before, con_before = X.copy(), dataclasses.replace(
-            con, mode=con.mode.copy(), curve=con.curve.copy(), released=con.released.copy()
-        )
-        movable_before = movable.copy()
-        dev_before = boundary_deviation(X, hexes, surf) if valid_before else None
+        if valid_before and unreleased is None and not con.released.any():
+            unreleased = (X.copy(), dataclasses.replace(
+                con, mode=con.mode.copy(), curve=con.curve.copy(), released=con.released.copy()
+            ), boundary_deviation(X, hexes, surf))
         # the nodes of the poor corners (a corner term below the bar, with its three neighbours)
         terms = sj_terms(X, hexes)[:, 1:]  # (H, 8) corner terms
         hb, kb = np.nonzero(terms < config.release_sj)
@@ -1703,7 +1706,6 @@ def _pull_back_once(
         pinned = (con.mode[li] == _CURVE) | (con.mode[li] == _FIXED)
         con.mode[li[pinned]] = _CHART
         con.curve[li[pinned]] = -1
-        released_before = released
         released += int(pinned.sum())
         movable[bs.nodes[li]] = True
         con.released[li] = True
@@ -1712,23 +1714,13 @@ def _pull_back_once(
             X, hexes, movable=movable, project=proj, project_nodes=bs.nodes, config=config,
             regularisation=regularisation(len(X)),
         )
-        if valid_before:
-            # a valid mesh is released only where it does not cost the surface fidelity
-            dev = boundary_deviation(X, hexes, surf)
-            if dev > max(1.1 * dev_before, config.release_max_deviation):
-                X, con, movable, reverted = X_before, con_before, movable_before, True
-                released = released_before
         timings["optimise_released"] = timings.get("optimise_released", 0.0) + time.perf_counter() - t0
         stages["released"] = _stats(X, hexes)
-        if reverted:
-            break
-    proj_info["released"] = int(released)
-    proj_info["release_reverted"] = bool(reverted)
-    modes = (("chart", _CHART), ("curve", _CURVE), ("fixed", _FIXED), ("free", _FREE))
-    proj_info["final_modes"] = {name: int((con.mode == code).sum()) for name, code in modes}
 
     # ---- step 4c: the coverage fit again, guarded
-    if cov is not None and config.final_coverage_iterations:
+    def final_coverage(X, con):
+        if cov is None or not config.final_coverage_iterations:
+            return X
         t0 = time.perf_counter()
         follow = inner if config.pillow and config.final_coverage_follow else None
         X, gi = guarded_coverage(
@@ -1736,8 +1728,22 @@ def _pull_back_once(
             follow=follow,
         )
         proj_info.update(gi)
-        timings["coverage_final"] = time.perf_counter() - t0
+        timings["coverage_final"] = timings.get("coverage_final", 0.0) + time.perf_counter() - t0
         stages["coverage_final"] = _stats(X, hexes)
+        return X
+
+    X = final_coverage(X, con)
+    if unreleased is not None and con.released.any():
+        # a valid mesh is released only where it does not cost the surface fidelity
+        X_un, con_un, dev_un = unreleased
+        dev = boundary_deviation(X, hexes, surf)
+        if dev > max(1.1 * dev_un, config.release_max_deviation):
+            stages["release_undone"] = {"deviation": dev, "deviation_before": dev_un, **_stats(X, hexes)}
+            X, con, released, reverted = final_coverage(X_un, con_un), con_un, 0, True
+    proj_info["released"] = int(released)
+    proj_info["release_reverted"] = bool(reverted)
+    modes = (("chart", _CHART), ("curve", _CURVE), ("fixed", _FIXED), ("free", _FREE))
+    proj_info["final_modes"] = {name: int((con.mode == code).sum()) for name, code in modes}
 
     # ---- step 5: guarded smoothing of the interior
     bmask = boundary_vertex_mask(hexes, len(X))

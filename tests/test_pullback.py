@@ -338,3 +338,47 @@ def test_bad_inputs_raise():
         PullbackConfig(interior="nope")
     with pytest.raises(ValueError, match="pillow_thickness"):
         PullbackConfig(pillow_thickness=1.5)
+
+
+# --------------------------------------------------------------------------- releasing poor corners
+
+
+@pytest.fixture(scope="module")
+def cylinder_runs():
+    """A cylinder through the classical chain (box polycube: its vertical edges land on the round
+    side, where pillow hexes get flat corners) with three release settings."""
+    import trimesh
+
+    from polycubenet.pipeline import PipelineConfig, mesh_surface
+
+    mesh = trimesh.creation.cylinder(radius=0.6, height=2.0, sections=48)
+    runs = {}
+    for key, over in {
+        "old_bar": dict(release_sj=0.1, release_rounds=2),
+        "default": {},
+        "no_deviation_allowed": dict(release_max_deviation=0.0),
+    }.items():
+        cfg = PipelineConfig(polycube="classical", target_hexes=1500, pullback=PullbackConfig(**over))
+        runs[key] = mesh_surface(mesh.vertices, mesh.faces, None, cfg, part_meta={"genus": 0})
+    return runs
+
+
+def test_releasing_poor_corners_lifts_the_minimum_within_the_fidelity_bar(cylinder_runs):
+    old, new = cylinder_runs["old_bar"], cylinder_runs["default"]
+    assert old.report.valid and new.report.valid
+    # with a release bar of 0.1 the flat pillow corners on the round side stay (min SJ 0.13)
+    assert old.report.sj_min < 0.2
+    assert new.report.sj_min >= 0.35, new.report.summary()
+    assert new.mesh.meta["projection"]["released"] > 0 and not new.mesh.meta["projection"]["release_reverted"]
+    assert new.report.surface["hausdorff"] <= 0.01
+
+
+def test_a_release_that_costs_fidelity_is_undone_after_the_final_coverage_fit(cylinder_runs):
+    undone, old = cylinder_runs["no_deviation_allowed"], cylinder_runs["old_bar"]
+    meta = undone.mesh.meta
+    assert meta["projection"]["release_reverted"] and meta["projection"]["released"] == 0
+    st = meta["stages"]["release_undone"]
+    assert st["deviation"] > st["deviation_before"]
+    # the undone state is the unreleased mesh (with its own final coverage fit): still valid, no better
+    assert undone.report.valid and undone.report.sj_min < 0.2
+    assert undone.report.surface["hausdorff"] <= old.report.surface["hausdorff"] + 1e-3
