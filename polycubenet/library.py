@@ -482,11 +482,12 @@ def partition_pullback(extracted: str | os.PathLike, corr: str | os.PathLike, lo
 
 
 def pullback_quality(path: str | os.PathLike) -> dict:
-    """``valid`` and ``sj_min`` of a :func:`partition_pullback` file (what decides whether the
-    flow tries the next polycube source), read from its metadata."""
+    """``valid``, ``sj_min`` and ``deviation`` of a :func:`partition_pullback` file (what decides
+    whether the flow tries the next polycube source), read from its metadata."""
     m = HexMesh.load(path).meta
-    sj = m.get("sj_min")
-    return {"valid": bool(m.get("valid")), "sj_min": None if sj is None else float(sj)}
+    sj, dev = m.get("sj_min"), m.get("deviation")
+    return {"valid": bool(m.get("valid")), "sj_min": None if sj is None else float(sj),
+            "deviation": None if dev is None else float(dev)}
 
 
 def report_export(hexc: str | os.PathLike, extracted: str | os.PathLike, loaded: str | os.PathLike,

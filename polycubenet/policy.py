@@ -19,13 +19,17 @@ The rules:
   (generation, registration, pullback), since the classical chain does not depend on it.
   A :class:`~polycubenet.errors.PartError` is final: a bad part is bad for every source.
   A source whose pulled-back mesh is not valid is also left, its mesh kept as a candidate;
-  so is a *learned* mesh that is valid but under ``learned_min_sj`` (the project's quality
-  bar, ``PipelineConfig.learned_min_sj`` = 0.2): the classical chain is the reference, and a
+  so is a valid mesh that does not follow the part (its ``deviation``, the pull-back's
+  cheap two-sided boundary distance relative to the diagonal, above
+  :data:`~polycubenet.tol.HAUSDORFF_REL_MAX`: a polycube that folds or cuts across the part
+  can still be untangled into a valid mesh of the wrong shape), and a *learned* mesh that
+  is valid but under ``learned_min_sj`` (the project's quality bar,
+  ``PipelineConfig.learned_min_sj`` = 0.2): the classical chain is the reference, and a
   learned polycube must give a mesh that good to be kept without comparing.
-* **The kept mesh**: the first valid one that ends the chain, unless an earlier candidate
-  ranks higher (:func:`mesh_rank`: valid first, then the higher minimum scaled Jacobian);
-  when none is valid, the candidate with the highest minimum scaled Jacobian, reported as
-  not valid.
+* **The kept mesh**: the first valid, faithful one that ends the chain, unless an earlier
+  candidate ranks higher (:func:`mesh_rank`: valid first, then faithful, then the higher
+  minimum scaled Jacobian); when none is valid, the candidate with the highest minimum
+  scaled Jacobian, reported as not valid.
 
 Every reason a source was left is one sentence in :attr:`Outcome.reasons`
 (``"<source> polycube rejected at <stage>: <reason>"`` or
@@ -40,6 +44,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from . import tol
 from .errors import PartError, PolycubeError
 
 #: the values of ``--polycube`` / ``PipelineConfig.polycube``
@@ -73,11 +78,25 @@ def leaves_source(source: str, exc: BaseException) -> bool:
     return source == "learned" and isinstance(exc, Exception)
 
 
+def faithful(meta: dict) -> bool:
+    """Whether a pulled-back mesh follows the part: its boundary ``deviation`` (relative to the
+    diagonal) within the Hausdorff bar; a mesh without the measure counts as faithful."""
+    dev = meta.get("deviation")
+    return dev is None or float(dev) <= tol.HAUSDORFF_REL_MAX
+
+
 def mesh_rank(meta: dict) -> tuple:
     """Order of pulled-back meshes (``HexMesh.meta`` or a quality dict): a valid one first,
-    then the higher minimum scaled Jacobian."""
+    then a faithful one (:func:`faithful`), then the higher minimum scaled Jacobian."""
     sj = meta.get("sj_min")
-    return (bool(meta.get("valid")), -np.inf if sj is None else float(sj))
+    return (bool(meta.get("valid")), faithful(meta), -np.inf if sj is None else float(sj))
+
+
+def unfaithful_reason(label: str, meta: dict) -> str:
+    """Why a valid mesh that does not follow the part made the chain try the next polycube."""
+    return (f"the {label} polycube's hex mesh is valid but {100 * float(meta['deviation']):.1f} % of the diagonal "
+            f"off the part (bar {100 * tol.HAUSDORFF_REL_MAX:g} %): the next polycube was tried and the better "
+            "mesh kept")
 
 
 def invalid_mesh_reason(label: str, meta: dict) -> str:
@@ -185,12 +204,18 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
         sj = att.quality.get("sj_min")
         below = (src == "learned" and learned_min_sj is not None and att.quality.get("valid")
                  and (sj is None or float(sj) < learned_min_sj))
-        if (att.quality.get("valid") and not below) or last:
+        off = bool(att.quality.get("valid")) and not faithful(att.quality)
+        if (att.quality.get("valid") and not below and not off) or last:
             chosen = att
             break
         candidates.append(att)
-        why = below_bar_reason(att.label or src, att.quality, learned_min_sj) if below else \
-            invalid_mesh_reason(att.label or src, att.quality)
+        label = att.label or src
+        if not att.quality.get("valid"):
+            why = invalid_mesh_reason(label, att.quality)
+        elif off:
+            why = unfaithful_reason(label, att.quality)
+        else:
+            why = below_bar_reason(label, att.quality, learned_min_sj)
         reasons.append(f"pullback: {why}")
         reject(att.seconds)
     pool = candidates + ([chosen] if chosen is not None and chosen not in candidates else [])
@@ -201,9 +226,13 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
     best = max(pool, key=lambda a: mesh_rank(a.quality))
     if chosen is not None and best is not chosen:  # the last source's mesh is worse than an earlier one
         label = chosen.label or chosen.source
-        why = (f"the {label} polycube's hex mesh is valid but worse (minimum scaled Jacobian "
-               f"{float(chosen.quality.get('sj_min')):.3f})" if chosen.quality.get("valid")
-               else invalid_mesh_reason(label, chosen.quality))
+        if not chosen.quality.get("valid"):
+            why = invalid_mesh_reason(label, chosen.quality)
+        elif not faithful(chosen.quality):
+            why = f"the {label} polycube's hex mesh is valid but does not follow the part as closely as an earlier one"
+        else:
+            why = (f"the {label} polycube's hex mesh is valid but worse (minimum scaled Jacobian "
+                   f"{float(chosen.quality.get('sj_min')):.3f})")
         reasons.append(f"pullback: {why}")
         reject(chosen.seconds)
     if best in candidates:  # counted as rejected when it was left; kept now

@@ -1538,7 +1538,9 @@ def _pull_back_once(
         ``stages`` (SJ min/avg/inverted/degenerate after each step), ``pillowed``,
         ``multi_boundary_before`` / ``multi_boundary_after`` (hexes with >= 2 boundary
         faces), ``projection`` (fallbacks, snapped nodes, chart sizes), ``node_kinds``,
-        ``valid``, ``sj_min``, ``sj_avg`` and ``warnings`` (sentences).
+        ``valid``, ``deviation`` (:func:`boundary_deviation` relative to the diagonal: what
+        the fallback policy checks against the Hausdorff bar), ``sj_min``, ``sj_avg`` and
+        ``warnings`` (sentences).
 
     Raises
     ------
@@ -1756,6 +1758,7 @@ def _pull_back_once(
 
     final = _stats(X, hexes)
     valid = final["inverted"] == 0 and final["degenerate"] == 0 and final["sj_min"] > 0
+    deviation = boundary_deviation(X, hexes, surf)  # the diagonal is 1 here: relative to it
     if not valid:
         warnings.append(
             f"The pulled-back mesh is not valid: {final['inverted']} inverted and {final['degenerate']} "
@@ -1777,6 +1780,7 @@ def _pull_back_once(
         "node_kinds": kinds,
         "interior": config.interior,
         "valid": bool(valid),
+        "deviation": float(deviation),
         "sj_min": final["sj_min"],
         "sj_avg": final["sj_avg"],
         "warnings": warnings,

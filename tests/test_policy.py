@@ -104,3 +104,23 @@ def test_a_valid_learned_mesh_under_the_bar_is_compared_with_the_classical_one()
     assert run_chain(chain, attempt, learned_min_sj=0.2).chosen.source == "learned" and calls == ["learned"]
     attempt, calls = _scripted({"classical": {"valid": True, "sj_min": 0.05}, "voxel": {"valid": True, "sj_min": 0.5}})
     assert run_chain(["classical", "voxel"], attempt, learned_min_sj=0.2).chosen.source == "classical"
+
+
+def test_a_valid_mesh_off_the_part_tries_the_next_source_and_the_faithful_one_wins():
+    # fertility through the classical polycube: untangled into a valid mesh 5 % of the diagonal off the part
+    attempt, calls = _scripted({"classical": {"valid": True, "sj_min": 0.3, "deviation": 0.05},
+                                "voxel": {"valid": True, "sj_min": 0.15, "deviation": 0.006}})
+    out = run_chain(["classical", "voxel"], attempt)
+    assert calls == ["classical", "voxel"] and out.chosen.source == "voxel"
+    assert "5.0 % of the diagonal off the part" in out.fallback_reason
+    assert out.rejected_seconds == {"polycube": 1.0, "pullback": 2.0}
+
+
+def test_an_off_part_mesh_is_still_kept_over_an_invalid_one_and_faithful_meshes_end_the_chain():
+    attempt, _ = _scripted({"classical": {"valid": True, "sj_min": 0.3, "deviation": 0.05},
+                            "voxel": {"valid": False, "sj_min": -0.2, "deviation": 0.001}})
+    out = run_chain(["classical", "voxel"], attempt)
+    assert out.chosen.source == "classical" and out.chosen.quality["valid"]
+    attempt, calls = _scripted({"classical": {"valid": True, "sj_min": 0.3, "deviation": 0.009},
+                                "voxel": {"valid": True}})
+    assert run_chain(["classical", "voxel"], attempt).chosen.source == "classical" and calls == ["classical"]
