@@ -61,7 +61,7 @@ from .hexmesh import partition
 from .polycube import polycube_surface
 from .policy import MODES as POLYCUBE_MODES
 from .policy import Attempt, error_reason, invalid_mesh_reason, mesh_rank, run_chain, source_names  # noqa: F401
-from .pullback import PullbackConfig, pull_back
+from .pullback import PullbackConfig, pull_back, worth_retry
 from .quality import QualityReport, quality_report
 from .registration import align
 from .sampling import poisson_disk, uniform_sample
@@ -348,7 +348,8 @@ def _polycube_stages(source, sample, Vc, F, genus, config, name, clock, res):
 def _pull_back_classical(mesh_pc, corr, Vc, F, config: PipelineConfig) -> HexMesh:
     """Pullback with the classical (exact on the surface) map: the interior mode of
     ``config.classical.interior`` first; when that mesh is not valid, the other mode too,
-    keeping the mesh with the higher minimum scaled Jacobian (``meta["interior"]`` says which)."""
+    keeping the mesh with the higher minimum scaled Jacobian (``meta["interior"]`` says which); not when the
+    first mesh is far from valid (:func:`polycubenet.pullback.worth_retry`)."""
     modes = [config.classical.interior] + [m for m in ("harmonic", "correction") if m != config.classical.interior]
     best = None
     for mode in modes:
@@ -356,7 +357,7 @@ def _pull_back_classical(mesh_pc, corr, Vc, F, config: PipelineConfig) -> HexMes
         mesh.meta["interior"] = mode
         if best is None or (mesh.meta.get("sj_min") or -np.inf) > (best.meta.get("sj_min") or -np.inf):
             best = mesh
-        if best.meta.get("valid"):
+        if best.meta.get("valid") or not worth_retry(best.meta, config.pullback):
             break
     return best
 

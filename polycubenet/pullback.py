@@ -243,6 +243,11 @@ class PullbackConfig:
     final_coverage_iterations: int = 10
     final_coverage_sj: float = 0.3
     final_coverage_follow: bool = True
+    #: a result that is not valid is recomputed another way (without the coverage fit; with the other
+    #: interior mode for the classical map) only when its minimum SJ is at least this: a few barely
+    #: inverted hexes can tip; a folded map (-0.9 on the helical groove, -0.1 on HexGen mount2) never
+    #: did in the 4 variants measured on those, which cost 36-62 s before the voxel polycube meshed them
+    retry_min_sj: float = -0.05
 
     def __post_init__(self):
         if self.interior not in ("correction", "harmonic"):
@@ -1482,6 +1487,13 @@ def _stats(X: np.ndarray, hexes: np.ndarray) -> dict:
     }
 
 
+def worth_retry(meta: dict, config: PullbackConfig) -> bool:
+    """Whether a pulled-back mesh that is not valid is close enough to valid to be recomputed
+    another way (``config.retry_min_sj``)."""
+    sj = meta.get("sj_min")
+    return sj is not None and float(sj) >= config.retry_min_sj
+
+
 def pull_back(
     mesh_pc: HexMesh,
     to_part: Callable[[np.ndarray], np.ndarray],
@@ -1491,13 +1503,13 @@ def pull_back(
 ) -> HexMesh:
     """Map a polycube-domain hex mesh onto the part (see the module docstring for the steps).
 
-    When the result is not valid and the coverage fit of step 1b ran, the pull-back runs once
-    more without it (the fit slides boundary nodes, which can leave a pillow layer that cannot
+    When the result is not valid (but its minimum SJ is at least ``config.retry_min_sj``) and
+    the coverage fit of step 1b ran, the pull-back runs once more without it (the fit slides boundary nodes, which can leave a pillow layer that cannot
     be untangled) and the valid one of the two is returned (``meta["coverage_retry"]`` is
     ``"kept"`` or ``"discarded"``): validity first, then fidelity.
     """
     res = _pull_back_once(mesh_pc, to_part, V, F, config)
-    if res.meta["valid"] or not config.coverage_iterations:
+    if res.meta["valid"] or not config.coverage_iterations or not worth_retry(res.meta, config):
         return res
     again = _pull_back_once(mesh_pc, to_part, V, F, dataclasses.replace(config, coverage_iterations=0))
     total = res.meta["timings"]["total"] + again.meta["timings"]["total"]
@@ -1808,6 +1820,7 @@ __all__ = [
     "fit_coverage",
     "guarded_coverage",
     "pull_back",
+    "worth_retry",
 ]
 
 

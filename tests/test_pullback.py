@@ -382,3 +382,23 @@ def test_a_release_that_costs_fidelity_is_undone_after_the_final_coverage_fit(cy
     # the undone state is the unreleased mesh (with its own final coverage fit): still valid, no better
     assert undone.report.valid and undone.report.sj_min < 0.2
     assert undone.report.surface["hausdorff"] <= old.report.surface["hausdorff"] + 1e-3
+
+
+@pytest.mark.parametrize("first_min, calls_expected", [(-0.9, 1), (-0.01, 2)])
+def test_a_far_from_valid_result_is_not_recomputed_without_the_coverage_fit(monkeypatch, first_min, calls_expected):
+    import polycubenet.pullback as pb
+
+    calls = []
+
+    def fake_once(mesh_pc, to_part, V, F, config):
+        calls.append(config.coverage_iterations)
+        return HexMesh(mesh_pc.points, mesh_pc.hexes, mesh_pc.boundary,
+                       meta={"valid": False, "sj_min": first_min, "timings": {"total": 1.0}})
+
+    monkeypatch.setattr(pb, "_pull_back_once", fake_once)
+    pc = l_polycube()
+    m = partition(pc, target_size=0.5)
+    V, F = polycube_surface(pc.xs, pc.ys, pc.zs, pc.occupancy)
+    out = pb.pull_back(m, lambda p: p, V, F)
+    assert len(calls) == calls_expected and calls[0] == PullbackConfig().coverage_iterations
+    assert ("coverage_retry" in out.meta) == (calls_expected == 2)
