@@ -132,12 +132,6 @@ class ClassicalConfig:
         the part turned by up to this many further fixed rotations
         (:func:`_orientations`), which gives the labelling other chart layouts; the
         attempt of the right genus with the fewest flips is kept.
-    orientation_seconds : float or None
-        No further orientation is started after this many seconds of the search: the best
-        attempt so far is returned (``meta["orientation_search_stopped"]``), and a wrong
-        genus is then rejected at extraction, where the voxel polycube takes over.  A plate
-        with 12 holes (``benchmarks/hard_models.py``) spent 264 s in 9 orientations that all
-        closed one hole.  None: no limit.
     min_plane_gap, plane_gap_spacings : float
         When the extraction rejects the cloud, distinct chart planes of one axis are moved at least ``max(min_plane_gap,
         plane_gap_spacings * s)`` apart (:func:`space_planes`), ``s`` being the point
@@ -158,7 +152,6 @@ class ClassicalConfig:
     max_faces: int = 16000
     interior: str = "harmonic"
     orientations: int = 8
-    orientation_seconds: float | None = 45.0
     min_plane_gap: float = 0.01
     plane_gap_spacings: float = 2.5
 
@@ -947,12 +940,7 @@ def classical_polycube(V: np.ndarray, F: np.ndarray, config: ClassicalConfig = C
     attempts = []
     chosen = None
     tried = []
-    stopped = False
-    t_search = time.perf_counter()
     for k, R in enumerate(_orientations(max(0, config.orientations))):
-        if k and config.orientation_seconds is not None and time.perf_counter() - t_search > config.orientation_seconds:
-            stopped = True
-            break
         (Vp, Vs, Fs, ls, info), att = _flatten(V @ R.T, F, config, seed)
         st = flat_structure(Vp, Fs, ls)
         ok = st["reason"] is None and (genus is None or st["genus"] == genus)
@@ -969,7 +957,7 @@ def classical_polycube(V: np.ndarray, F: np.ndarray, config: ClassicalConfig = C
             break
     Vp, Vs, Fs, ls, info = chosen[1]
     return Vp, Vs, Fs, ls, {"attempts": attempts, "orientations_tried": tried, "decimated": decimated,
-                            "part_genus": genus, "orientation_search_stopped": stopped, **info}
+                            "part_genus": genus, **info}
 
 
 @dataclasses.dataclass
