@@ -251,5 +251,34 @@ def main(argv: list[str] | None = None) -> int:
     return EXIT_OK
 
 
+def leave(code: int) -> None:
+    """End the process with ``code`` once Python's own exit work is done, without running the C
+    libraries' destructors.
+
+    Python's exit work (joining non-daemon threads, the ``atexit`` handlers: logging, the embedded
+    Prefect server, the Dask cluster) runs first and the streams are flushed; only ``_dl_fini`` is
+    skipped.  There, when open3d ran in one worker thread and a native library (gmsh, prefect's
+    dependencies, ...) was first loaded in another, libEGL's destructor aborts the process
+    (``malloc_consolidate(): unaligned fastbin chunk detected``, rc 134) after every output was
+    written: a batch script would read a complete run as a crash (``--runner threads``).
+    """
+    import atexit
+    import threading
+
+    threading._shutdown()  # what the interpreter does first at exit: wait for non-daemon threads
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code)
+
+
+def entry() -> None:
+    """The ``polycubenet`` console script: :func:`main`, then :func:`leave`."""
+    leave(main())
+
+
 if __name__ == "__main__":
-    raise SystemExit(main())
+    entry()

@@ -763,7 +763,7 @@ def relabel_flipped(V: np.ndarray, F: np.ndarray, labels: np.ndarray, flipped: n
 def decimate(V: np.ndarray, F: np.ndarray, n_faces: int) -> tuple[np.ndarray, np.ndarray] | None:
     """Quadric decimation of ``(V, F)`` to about ``n_faces`` triangles, or None when the result
     is not a closed, self-intersection-free manifold of the same genus."""
-    import open3d as o3d
+    from ._o3d import open3d as o3d
 
     from .polycube import surface_genus
 

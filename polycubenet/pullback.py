@@ -372,7 +372,7 @@ def _mean_edge_length(X: np.ndarray, edges: np.ndarray, n: int) -> np.ndarray:
 
 
 def _scene(V: np.ndarray, F: np.ndarray):
-    import open3d as o3d
+    from ._o3d import open3d as o3d
 
     s = o3d.t.geometry.RaycastingScene()
     s.add_triangles(
@@ -384,7 +384,7 @@ def _scene(V: np.ndarray, F: np.ndarray):
 
 def _closest(scene, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closest points (n, 3), distances (n,), triangle ids (n,) of ``Q`` on an open3d scene."""
-    import open3d as o3d
+    from ._o3d import open3d as o3d
 
     if len(Q) == 0:
         return np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64)
@@ -946,7 +946,7 @@ class _Coverage:
         s2h : float, largest distance of a surface sample to the quads
         h2s : float, largest distance of a quad sample point to the surface
         """
-        import open3d as o3d
+        from ._o3d import open3d as o3d
 
         sc = _scene(X, self.tris)
         r = sc.compute_closest_points(o3d.core.Tensor(np.ascontiguousarray(self.S, dtype=np.float32)))

@@ -229,7 +229,7 @@ def _sample_triangles(V: np.ndarray, F: np.ndarray, n: int, rng: np.random.Gener
 def _point_triangle_distance(query: np.ndarray, V: np.ndarray, F: np.ndarray) -> np.ndarray:
     """Exact unsigned distance from each query point to the triangle mesh (V, F)."""
     try:
-        import open3d as o3d
+        from ._o3d import open3d as o3d
     except ImportError:  # pragma: no cover - fallback when open3d is missing
         import trimesh
 

@@ -23,7 +23,7 @@ MAX_POINTS = 1 << 20
 
 def _open3d():
     try:
-        import open3d as o3d
+        from ._o3d import open3d as o3d
     except ImportError as exc:  # pragma: no cover - depends on the machine
         raise ImportError(
             "Poisson-disk sampling needs open3d (pip install open3d; on Debian also "

@@ -161,7 +161,7 @@ class VoxelConfig:
 
 
 def _scene(V: np.ndarray, F: np.ndarray):
-    import open3d as o3d
+    from ._o3d import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.asarray(V, np.float32)), o3d.core.Tensor(np.asarray(F, np.uint32)))
@@ -180,7 +180,7 @@ def voxel_grid(V: np.ndarray, n: int) -> list[np.ndarray]:
 
 def inside_fractions(scene, grid: list[np.ndarray], sub: int) -> np.ndarray:
     """Fraction ``(nx, ny, nz)`` of ``sub**3`` regular samples of every cell inside the part."""
-    import open3d as o3d
+    from ._o3d import open3d as o3d
 
     t = (np.arange(sub) + 0.5) / sub
     axes = [(g[:-1, None] + np.diff(g)[:, None] * t[None]).ravel() for g in grid]
@@ -345,7 +345,7 @@ def _adjacency(F: np.ndarray, nv: int) -> sp.csr_matrix:
 
 
 def _closest(scene, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    import open3d as o3d
+    from ._o3d import open3d as o3d
 
     r = scene.compute_closest_points(o3d.core.Tensor(np.asarray(X, np.float32)))
     return r["points"].numpy().astype(np.float64), r["primitive_normals"].numpy().astype(np.float64)

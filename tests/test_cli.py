@@ -107,3 +107,35 @@ def test_publish_writes_checkpoint_and_metrics_together(tmp_path):
     body = json.loads((pub / "latest.json").read_text())
     assert body["checkpoint"] == "polycubenet-cpu-1.pt" and body["metrics"] == {"chamfer": 0.012, "structure_ok": 0.8}
     assert res["summary"]["chamfer"] == 0.012 and not list(pub.glob(".tmp-*"))
+
+
+def test_leave_keeps_the_exit_code_where_native_destructors_would_abort(tmp_path):
+    # open3d used in one worker thread, then gmsh first loaded in another: at the normal exit libEGL's
+    # destructor aborts (rc 134) although the work is done; the console script ends through leave()
+    import subprocess
+    import sys
+    import textwrap
+
+    body = textwrap.dedent("""
+        import threading
+        import numpy as np
+        import trimesh
+
+        m = trimesh.creation.icosphere(3)
+        V, F = np.asarray(m.vertices), np.asarray(m.faces)
+
+        def raycast():  # the library (and open3d) first imported in a worker thread, as in the flow
+            from polycubenet import pullback
+
+            pullback._closest(pullback._scene(V, F), np.zeros((3, 3)))
+
+        for fn in (raycast, lambda: __import__("gmsh")):
+            t = threading.Thread(target=fn)
+            t.start()
+            t.join()
+        print("done")
+    """)
+    script = tmp_path / "leave.py"
+    script.write_text(body + "from flows.cli import leave\nleave(3)\n")
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 3 and r.stdout.strip() == "done", (r.returncode, r.stderr[-500:])

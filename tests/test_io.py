@@ -524,3 +524,37 @@ def test_self_intersecting_surface_is_refused_and_slivers_are_recorded(tmp_path)
         load_part(write_surface(V, s.faces, tmp_path / "poked.stl"))
     ok = part_from_arrays(s.vertices, s.faces)  # the same sphere untouched has no crossing
     assert not any("self-intersecting" in r for r in ok.meta["repairs"])
+
+
+def test_open3d_in_one_thread_then_pymeshlab_in_another_exits_cleanly(tmp_path):
+    # the flow's thread runner: the pull-back raycasts with open3d in one worker thread, a later load's
+    # self-intersection test imports pymeshlab in another.  With open3d imported first, the process
+    # aborted at exit (rc 134, malloc_consolidate in libEGL's destructor) after all output was written.
+    import subprocess
+    import sys
+    import textwrap
+
+    script = tmp_path / "threads.py"
+    script.write_text(textwrap.dedent("""
+        import threading
+        import numpy as np
+        import trimesh
+        from polycubenet import io, pullback
+
+        m = trimesh.creation.icosphere(3)
+        V, F = np.asarray(m.vertices), np.asarray(m.faces)
+
+        def raycast():
+            pullback._closest(pullback._scene(V, F), np.zeros((3, 3)))
+
+        def self_intersections():
+            assert len(io.self_intersecting_faces(V, F)) == 0
+
+        for fn in (raycast, self_intersections):
+            t = threading.Thread(target=fn)
+            t.start()
+            t.join()
+        print("done")
+    """))
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and "done" in r.stdout, (r.returncode, r.stderr[-500:])
