@@ -1504,8 +1504,8 @@ def pull_back(
     """Map a polycube-domain hex mesh onto the part (see the module docstring for the steps).
 
     When the result is not valid (but its minimum SJ is at least ``config.retry_min_sj``) and
-    the coverage fit of step 1b ran, the pull-back runs once more without it (the fit slides boundary nodes, which can leave a pillow layer that cannot
-    be untangled) and the valid one of the two is returned (``meta["coverage_retry"]`` is
+    the coverage fit of step 1b ran, the pull-back runs once more without it (the fit slides
+    boundary nodes, which can leave a pillow layer that cannot be untangled) and the valid one of the two is returned (``meta["coverage_retry"]`` is
     ``"kept"`` or ``"discarded"``): validity first, then fidelity.
     """
     res = _pull_back_once(mesh_pc, to_part, V, F, config)
@@ -1747,13 +1747,15 @@ def _pull_back_once(
         return X
 
     X = final_coverage(X, con)
+    # the boundary is final from here (the smoothing moves interior nodes only): measured once
+    deviation = boundary_deviation(X, hexes, surf)  # the diagonal is 1 here: relative to it
     if unreleased is not None and con.released.any():
         # a valid mesh is released only where it does not cost the surface fidelity
         X_un, con_un, dev_un = unreleased
-        dev = boundary_deviation(X, hexes, surf)
-        if dev > max(1.1 * dev_un, config.release_max_deviation):
-            stages["release_undone"] = {"deviation": dev, "deviation_before": dev_un, **_stats(X, hexes)}
+        if deviation > max(1.1 * dev_un, config.release_max_deviation):
+            stages["release_undone"] = {"deviation": deviation, "deviation_before": dev_un, **_stats(X, hexes)}
             X, con, released, reverted = final_coverage(X_un, con_un), con_un, 0, True
+            deviation = boundary_deviation(X, hexes, surf)
     proj_info["released"] = int(released)
     proj_info["release_reverted"] = bool(reverted)
     modes = (("chart", _CHART), ("curve", _CURVE), ("fixed", _FIXED), ("free", _FREE))
@@ -1770,7 +1772,6 @@ def _pull_back_once(
 
     final = _stats(X, hexes)
     valid = final["inverted"] == 0 and final["degenerate"] == 0 and final["sj_min"] > 0
-    deviation = boundary_deviation(X, hexes, surf)  # the diagonal is 1 here: relative to it
     if not valid:
         warnings.append(
             f"The pulled-back mesh is not valid: {final['inverted']} inverted and {final['degenerate']} "
