@@ -13,7 +13,7 @@ shape's samples and measure
 * structure: the outlier filter and :func:`polycubenet.structure.extract` on the
   generated cloud, compared with the ground-truth grid and occupancy (exact match of
   the minimal grid topology and occupancy, planes within a tolerance) and its genus
-  against the pair's genus.
+  against the pair's genus (given to the extraction, as the pipeline gives the part's).
 
 With ``--publish`` the checkpoint is stripped to the shipped form (EMA weights in
 float16) with these metrics inside.
@@ -107,7 +107,9 @@ def _structure(P: np.ndarray, N: np.ndarray, gt, genus: int, part: str) -> dict:
     """Outlier filter + extraction of a cloud, compared with the ground-truth polycube ``gt``."""
     try:
         P, N, _ = remove_outliers(P, N)
-        poly = extract(P, N, genus=None, part=part)
+        # the pair's genus is given, as the pipeline gives the part's: a polycube of another genus is
+        # rejected (and the extraction retries without its plane filter, see ExtractConfig)
+        poly = extract(P, N, genus=genus, part=part)
     except PolycubeError as exc:
         return {"genus_got": None, "genus_match": False, "exact": False, "plane_offset": None, "error": str(exc)}
     got = int(poly.meta["genus"])

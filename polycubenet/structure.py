@@ -9,7 +9,9 @@ with noise.  :func:`extract` works in four steps:
 2. **Planes per axis** by 1-D clustering of the labelled points' coordinate along
    their axis: a Gaussian kernel density with the cloud's own noise level as
    bandwidth, its peaks as plane candidates, near-duplicates merged, peaks with too
-   few points dropped; each plane's coordinate is the trimmed mean of its points.
+   few points dropped; each plane's coordinate is the trimmed mean of its points.  When
+   the result fails validation, the extraction runs once more keeping planes of a single
+   point (``ExtractConfig.relaxed_plane_points``): a narrow hole's walls carry only a few.
 3. **Occupied cells** from face evidence.  Every labelled point votes on the grid
    face it lies on (plane, footprint cell) with its normal's sign (``+a``: solid
    before the plane, empty after).  Six scans (each axis, both directions) walk the
@@ -52,9 +54,18 @@ class ExtractConfig:
     #: planes closer than ``merge_sigmas`` bandwidths are one plane
     merge_sigmas: float = 2.0
     #: a plane needs at least this many points (absolute) ...
-    min_plane_points: int = 4
+    min_plane_points: int = 3
     #: ... and at least this fraction of the points of its axis
-    min_plane_fraction: float = 0.002
+    min_plane_fraction: float = 0.001
+    #: when the cloud fails with that filter, extract once more with planes of at least this many
+    #: points and no fraction (None: no second try).  A real step's face can carry only a point or
+    #: two at 2048 points, while on a real part's generated cloud the curved faces leave small
+    #: spurious peaks that only the filter removes; strict first, then relaxed, keeps both.
+    #: Measured on clouds not used for any reported figure (128 pairs of seed 3; 32 parts of
+    #: ``unseen_parts`` mixed seed 21 and blocks seed 23), 9.28 h model, exact structure / accepted:
+    #: 4 points & 0.2 % alone 43 / 27 of 32, 1 point alone 54 / 22, 3 & 0.1 % then 1: 51 / 28
+    #: (and from the ground-truth polycube clouds: 99 -> 122 of 128 exact with 1 point)
+    relaxed_plane_points: int | None = 1
     #: a boundary face is expected to carry at least this fraction of ``density * area`` points
     coverage_fraction: float = 0.25
     #: Chamfer tolerance: 95th percentile of cloud -> surface distance, in units of spacing
@@ -396,6 +407,23 @@ def extract(
         raise ValueError(f"points and normals must both be (M, 3); got {points.shape} and {normals.shape}")
     if len(points) < 32:
         raise PolycubeError(f"too few points to extract a polycube ({len(points)})", part)
+    try:
+        return _extract(points, normals, genus, config, part, validate)
+    except PolycubeError as strict:
+        relaxed = config.relaxed_plane_points
+        if relaxed is None or (relaxed >= config.min_plane_points and config.min_plane_fraction <= 0):
+            raise
+        loose = dataclasses.replace(config, min_plane_points=relaxed, min_plane_fraction=0.0)
+        try:
+            poly = _extract(points, normals, genus, loose, part, validate)
+        except PolycubeError:
+            raise strict from None
+        poly.meta["relaxed_planes"] = f"planes of >= {relaxed} point(s); with the filter: {strict}"
+        return poly
+
+
+def _extract(points, normals, genus, config: ExtractConfig, part, validate) -> Polycube:
+    """One extraction with one plane filter (see :func:`extract`)."""
     axis, sign = axis_labels(normals, config.label_cone_deg)
     spacing = point_spacing(points)
     noise = noise_level(points, axis)
