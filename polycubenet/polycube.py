@@ -479,8 +479,9 @@ def convex_edges(xs: np.ndarray, ys: np.ndarray, zs: np.ndarray, occ: np.ndarray
     Returns
     -------
     list of dict with ``axis`` (int), ``corner`` ((2,) coordinates on the two other axes
-    in cyclic order), ``signs`` ((2,) outward directions) and ``room`` (float, the
-    smallest width of the four cells across the edge)
+    in cyclic order), ``signs`` ((2,) outward directions), ``room`` (float, the
+    smallest width of the four cells across the edge) and ``rooms`` (that width on each of
+    the two other axes)
     """
     occ = _as_occupancy(occ)
     grids = [np.asarray(g, dtype=np.float64) for g in (xs, ys, zs)]
@@ -500,16 +501,15 @@ def convex_edges(xs: np.ndarray, ys: np.ndarray, zs: np.ndarray, occ: np.ndarray
             for j, k in np.argwhere(single):
                 db, dc = qi & 1, qi >> 1  # occupied cell is on the + side of the line when 1
                 gb, gc = grids[b], grids[c]
-                widths = []
+                rooms = []
                 for g, idx in ((gb, j), (gc, k)):
-                    for cell in (idx - 1, idx):
-                        if 0 <= cell < len(g) - 1:
-                            widths.append(g[cell + 1] - g[cell])
+                    rooms.append(min(g[cell + 1] - g[cell] for cell in (idx - 1, idx) if 0 <= cell < len(g) - 1))
                 out.append({
                     "axis": axis,
                     "corner": np.array([gb[j], gc[k]]),
                     "signs": np.array([-1.0 if db else 1.0, -1.0 if dc else 1.0]),
-                    "room": float(min(widths)),
+                    "room": float(min(rooms)),
+                    "rooms": (float(rooms[0]), float(rooms[1])),
                 })
     return out
 

@@ -169,6 +169,41 @@ def test_rounding_maps_are_invertible_and_round():
     np.testing.assert_allclose(r, 0.1, atol=1e-12)
 
 
+def test_slanted_chamfer_cuts_the_corner_along_its_two_legs_and_is_invertible():
+    """``radius2``: a chamfer with legs 0.3 and 0.1 (a cut at atan(1/3) to the x face, a slanted end)."""
+    cut = RoundEdge(axis=2, corner=np.array([0.5, 0.5]), signs=np.array([1.0, 1.0]), radius=0.3, style="chamfer",
+                    fade=0.3, radius2=0.1)
+    lo, hi = -0.5 * np.ones(3), 0.5 * np.ones(3)
+    ok, worst = check_invertible(cut, lo, hi, np.random.default_rng(2), n=8192)
+    assert ok, worst
+    t = np.linspace(0.0, 1.0, 41)
+    faces = np.concatenate([np.column_stack([0.2 + 0.3 * t, np.full_like(t, 0.5), np.zeros_like(t)]),
+                            np.column_stack([np.full_like(t, 0.5), 0.4 + 0.1 * t, np.zeros_like(t)])])
+    Y = cut(faces)
+    # the corner's two faces land on the line through (0.2, 0.5) and (0.5, 0.4)
+    np.testing.assert_allclose((Y[:, 0] - 0.2) / 0.3 + (Y[:, 1] - 0.4) / 0.1, 1.0, atol=1e-9)
+    # a map written before radius2 existed still loads, as the symmetric chamfer
+    d = cut.to_dict()
+    d.pop("radius2")
+    old = DeformationMap.from_dict({"maps": [d]})
+    assert old.maps[0].radius2 is None
+
+
+def test_cad_features_add_slanted_ends_and_round_bosses_to_valid_pairs():
+    """Off, the generator is the one before the option; on, some pairs get a slanted end and
+    more cylinders (bosses too).  make_pair checks each pair's map and genus itself."""
+    def kinds(cad):
+        out = []
+        for i in range(12):
+            p = make_pair(pair_seed(5, i), n_cond=128, n_target=128, cad_features=cad)
+            out += [m.kind + ("/slanted" if getattr(m, "radius2", None) is not None else "") for m in p.deformation.maps]
+        return out
+
+    base, cad = kinds(False), kinds(True)
+    assert "round_edge/slanted" in cad and "round_edge/slanted" not in base
+    assert cad.count("round_hole") > base.count("round_hole")
+
+
 def test_non_invertible_maps_are_caught():
     lo, hi = -0.5 * np.ones(3), 0.5 * np.ones(3)
     rng = np.random.default_rng(0)

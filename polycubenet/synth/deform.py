@@ -100,7 +100,10 @@ class ElementaryMap:
         sub = ElementaryMap.registry[d["kind"]]
         kwargs = {}
         for f in dataclasses.fields(sub):
-            v = d[f.name]
+            if f.name not in d and f.default is not dataclasses.MISSING:  # a field added later
+                v = f.default
+            else:
+                v = d[f.name]
             kwargs[f.name] = np.asarray(v, dtype=np.float64) if isinstance(v, list) else v
         return sub(**kwargs)
 
@@ -165,9 +168,12 @@ class RoundEdge(ElementaryMap):
     axis : int, the edge direction
     corner : (2,) the edge's coordinates on the two other axes (cyclic order)
     signs : (2,) +1 / -1, the outward direction of the two faces meeting at the edge
-    radius : float, fillet radius / chamfer leg
+    radius : float, fillet radius / chamfer leg (on the first of the two other axes)
     style : str, ``fillet`` or ``chamfer``
     fade : float > 0
+    radius2 : float or None, the leg on the second axis when it differs (an elliptic fillet,
+        or a chamfer cut at ``atan(radius2 / radius)``: a slanted end); the map is the
+        symmetric one in coordinates scaled by ``radius / radius2``, so still a bijection
     """
 
     kind: ClassVar[str] = "round_edge"
@@ -177,15 +183,17 @@ class RoundEdge(ElementaryMap):
     radius: float
     style: str
     fade: float
+    radius2: float | None = None
 
     def __call__(self, X: np.ndarray) -> np.ndarray:
         if self.style not in ("fillet", "chamfer"):
             raise ValueError(f"unknown edge style {self.style!r}")
         b, c = _other_axes(self.axis)
         r = self.radius
+        k = 1.0 if self.radius2 is None else r / self.radius2  # scale of the second axis
         # quadrant coordinates: 0 at the centre of the rounding, positive toward the outside
         u = self.signs[0] * (X[:, b] - self.corner[0]) + r
-        v = self.signs[1] * (X[:, c] - self.corner[1]) + r
+        v = self.signs[1] * (X[:, c] - self.corner[1]) * k + r
         ninf = np.maximum(u, v)
         inside = (u > 0) & (v > 0) & (ninf < r * (1.0 + self.fade))
         Y = X.copy()
@@ -197,7 +205,7 @@ class RoundEdge(ElementaryMap):
         w = 1.0 - _smoothstep((ninf / r - 1.0) / self.fade)
         g = w * (f - 1.0)
         Y[inside, b] += self.signs[0] * u * g
-        Y[inside, c] += self.signs[1] * v * g
+        Y[inside, c] += self.signs[1] * v * g / k
         return Y
 
 
@@ -441,6 +449,7 @@ def random_deformation(
     edges: list[dict] = (),
     *,
     strength: float | None = None,
+    slanted_ends: bool = False,
 ) -> DeformationMap:
     """A random composition: roundings (holes, edges), then ramp / taper / shear / twist / bend / FFD.
 
@@ -454,6 +463,10 @@ def random_deformation(
         (:func:`~polycubenet.synth.polycube.convex_edges`)
     strength : float in [0, 1] or None, overall intensity of the global maps
         (random if None; 0 keeps only roundings)
+    slanted_ends : bool, also cut (probability 0.5) one convex edge by a long chamfer at
+        20-45 degrees to one of its faces, up to most of its cells' widths: the slanted end
+        or large bevel a machined part has.  Off, the random stream is the one before
+        this option existed.
 
     Returns
     -------
@@ -497,6 +510,20 @@ def random_deformation(
         style = "chamfer" if rng.random() < chamfer_p else "fillet"
         maps.append(RoundEdge(int(e["axis"]), np.asarray(e["corner"], dtype=np.float64).copy(),
                               np.asarray(e["signs"], dtype=np.float64).copy(), r, style, fade))
+
+    if slanted_ends and edges and rng.random() < 0.5:
+        e = edges[int(rng.integers(len(edges)))]
+        room_b, room_c = e.get("rooms", (e["room"], e["room"]))
+        fade = 0.3
+        slope = np.tan(np.radians(rng.uniform(20.0, 45.0)))
+        long_b = rng.random() < 0.5
+        r_long = rng.uniform(0.4, 0.85) * (room_b if long_b else room_c) / (1.0 + fade)
+        r_short = min(slope * r_long, 0.85 * (room_c if long_b else room_b) / (1.0 + fade))
+        r_b, r_c = (r_long, r_short) if long_b else (r_short, r_long)
+        if min(r_b, r_c) >= 0.004:
+            maps.append(RoundEdge(int(e["axis"]), np.asarray(e["corner"], dtype=np.float64).copy(),
+                                  np.asarray(e["signs"], dtype=np.float64).copy(), float(r_b), "chamfer", fade,
+                                  float(r_c)))
 
     if strength > 0:
         s = strength

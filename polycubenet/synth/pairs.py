@@ -213,6 +213,7 @@ def make_pair(
     style: str | None = None,
     n_holes: int | None = None,
     strength: float | None = None,
+    cad_features: bool = False,
 ) -> SynthPair:
     """Generate one pair from ``seed`` (see the module docstring for the steps).
 
@@ -227,6 +228,9 @@ def make_pair(
     max_snap_deg : float, rejection bound on the canonical rotation (module docstring)
     style, n_holes : forwarded to :func:`random_polycube` (None = random)
     strength : forwarded to :func:`random_deformation` (None = random)
+    cad_features : bool, also round bosses into cylinders (like holes) and cut slanted ends
+        (``random_deformation(slanted_ends=True)``): features of machined parts the base
+        generator lacks.  Off, a seed gives the pair it gave before this option existed.
 
     Returns
     -------
@@ -244,11 +248,12 @@ def make_pair(
         pc = random_polycube(rng, style=style, n_holes=n_holes)
         V0, Q = polycube_quads(pc.xs, pc.ys, pc.zs, pc.occupancy, h=edge_length)
         lo, hi = pc.bounds
-        holes = [(f.axis, f.lo, f.hi) for f in pc.features if f.kind in ("through_hole", "pocket")]
+        rounded = ("through_hole", "pocket", "boss") if cad_features else ("through_hole", "pocket")
+        holes = [(f.axis, f.lo, f.hi) for f in pc.features if f.kind in rounded]
         t1 = time.perf_counter()
         timings["polycube"] += t1 - t0
         edges = convex_edges(pc.xs, pc.ys, pc.zs, pc.occupancy)
-        dmap = random_deformation(rng, lo, hi, holes, edges, strength=strength)
+        dmap = random_deformation(rng, lo, hi, holes, edges, strength=strength, slanted_ends=cad_features)
         ok, min_det = check_invertible(dmap, lo, hi, rng, extra=V0)
         timings["deformation"] += time.perf_counter() - t1
         if not ok:

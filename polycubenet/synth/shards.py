@@ -76,6 +76,7 @@ class ShardParams:
     sampler: str = "poisson"
     edge_length: float = EDGE_LENGTH
     full: bool = False
+    cad_features: bool = False
 
 
 def pair_record(pair: SynthPair, index: int, full: bool = False) -> dict:
@@ -227,7 +228,8 @@ class Shard:
         """Rebuild the full pair ``k`` (meshes, map, float64 samples) from its seed."""
         p = self.meta["params"]
         return make_pair(int(self.arrays["seeds"][k]), n_cond=p["n_cond"], n_target=p["n_target"],
-                         sampler=p["sampler"], edge_length=p["edge_length"])
+                         sampler=p["sampler"], edge_length=p["edge_length"],
+                         cad_features=bool(p.get("cad_features", False)))
 
 
 def load_shard(path: str | Path) -> Shard:
@@ -252,7 +254,7 @@ def iter_pairs(directory: str | Path) -> Iterator[dict]:
 def _make_record(task: tuple[int, int, ShardParams]) -> dict:
     dataset_seed, index, params = task
     pair = make_pair(pair_seed(dataset_seed, index), n_cond=params.n_cond, n_target=params.n_target,
-                     sampler=params.sampler, edge_length=params.edge_length)
+                     sampler=params.sampler, edge_length=params.edge_length, cad_features=params.cad_features)
     return pair_record(pair, index, full=params.full)
 
 
@@ -279,6 +281,7 @@ def write_dataset(
     full: bool = False,
     overwrite: bool = False,
     progress: bool = True,
+    cad_features: bool = False,
 ) -> list[Path]:
     """Generate ``count`` pairs into ``out/shard-*.npz`` plus ``out/dataset.json``.
 
@@ -299,6 +302,7 @@ def write_dataset(
     overwrite : bool, regenerate shards that exist; required when the parameters differ
         from an existing manifest in ``out``
     progress : bool, tqdm progress bar on stderr
+    cad_features : bool, round bosses and slanted ends too (:func:`~polycubenet.synth.pairs.make_pair`)
 
     Returns
     -------
@@ -310,7 +314,7 @@ def write_dataset(
         raise ValueError(f"seed must be non-negative; got {seed}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    params = ShardParams(int(n_cond), int(n_target), str(sampler), float(edge_length), bool(full))
+    params = ShardParams(int(n_cond), int(n_target), str(sampler), float(edge_length), bool(full), bool(cad_features))
     n_shards = (count + per_shard - 1) // per_shard
     shards = [
         {"name": f"shard-{k:05d}.npz", "first": k * per_shard, "count": min(per_shard, count - k * per_shard)}
@@ -321,6 +325,8 @@ def write_dataset(
     mpath = out / MANIFEST
     if mpath.exists() and not overwrite:
         old = json.loads(mpath.read_text())
+        # a manifest written before a parameter existed has that parameter's default
+        old["params"] = {**dataclasses.asdict(ShardParams()), **old.get("params", {})}
         same = all(old.get(k) == manifest[k] for k in ("format", "seed", "per_shard", "params"))
         if not same:
             raise ValueError(f"{out} holds a dataset with other parameters ({mpath}); pass overwrite=True")
