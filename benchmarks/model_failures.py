@@ -182,8 +182,9 @@ def main(argv=None) -> int:
                  "pairs": ev["pairs"], "n_out": args.n_out, "n_generated": ev.get("n_generated"), "steps": args.steps,
                  "anchor_normals": bool((meta.get("model_config") or {}).get("anchor_normals")),
                  "label_accuracy": ev.get("label_accuracy_median"),
-                 # 1: noise-wide plane kernel; 2: kernel floored at 0.4 spacings + contact repair (session 3)
-                 "extraction": 2,
+                 # 1: noise-wide plane kernel; 2: kernel floored at 0.4 spacings + contact repair (session 3);
+                 # 3: planes of 3 points / 0.1 %, a retry keeping single-point planes, the pair's genus given (session 6)
+                 "extraction": 3,
                  "label_accuracy_part_normals": ev.get("label_accuracy_part_normals_median"),
                  "anchored": bool((meta.get("model_config") or {}).get("anchored")),
                  "chamfer_median": ev["chamfer_median"], "chamfer_identity": ev.get("chamfer_identity_median"),

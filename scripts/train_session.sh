@@ -3,13 +3,16 @@
 #
 #   scripts/train_session.sh MINUTES [THREADS]      e.g.  scripts/train_session.sh 150 1
 #
-# 1. makes the training shards (seed 1, 4096 pairs) and held-out shards (seed 2, 256 pairs) under
+# 1. makes the held-out shards (seed 2, 256 pairs) and the first training set (seed 1, 4096 pairs) under
 #    $DATA (default /work/data) if they are not there yet (resumable; ~13 min on 2 cores);
 # 2. trains from the committed checkpoint (polycubenet/checkpoints/polycubenet-cpu.pt: its EMA weights,
 #    a fresh optimizer with a short warm-up) with the recipe recorded in it, into $RUN (default
-#    /work/run-session), stopping cleanly after MINUTES;
-# 3. publish and commit with:   scripts/publish_checkpoint.sh $RUN
-# Re-running the same command resumes $RUN/last.pt.  Log: $RUN/train.out.
+#    /work/run-session), stopping cleanly after MINUTES, on $DATA/mix: links to every training shard;
+# 3. meanwhile, one more process makes the further training sets (seed 4, 8192 pairs; seed 5, 8192 pairs
+#    with --cad-features: round bosses, slanted ends) and links each finished shard into $DATA/mix, where
+#    the training picks it up (--reload-every 200), so training starts after the first set only;
+# 4. publish and commit with:   scripts/publish_checkpoint.sh $RUN 1
+# Re-running the same command resumes $RUN/last.pt.  Logs: $RUN/train.out, $RUN/data.out.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 MINUTES=${1:?minutes of training}
@@ -21,6 +24,7 @@ PY=${PY:-.venv/bin/python}
 LR=${LR:-3e-4}
 STEPS=${STEPS:-1000000}
 MIN_LR_RATIO=${MIN_LR_RATIO:-1.0}
+SEED=${SEED:-0}  # the pair draw of the run: another value for another session's run
 CKPT=polycubenet/checkpoints/polycubenet-cpu.pt
 mkdir -p "$RUN"
 # the recipe the shipped checkpoint was trained with, as train flags
@@ -37,11 +41,25 @@ flags = ["--preset", tc.get("preset", "cpu"),
 print(" ".join(flags))
 EOF
 )
+SYNTH="$PY -m polycubenet.synth --n-cond 2048 --n-target 2048 --no-progress"
+link() {  # link() SRC PREFIX: every finished shard of SRC into $DATA/mix as shard-PREFIX<n>.npz
+  echo "for f in $DATA/$1/shard-*.npz; do [ -e \$f ] || continue; b=\$(basename \$f); \
+        [ -e $DATA/mix/shard-$2\${b#shard-} ] || ln -s \$f $DATA/mix/shard-$2\${b#shard-}; done"
+}
+mkdir -p "$DATA/mix"
 setsid nohup bash -c "
-  $PY -m polycubenet.synth --out $DATA/heldout --count 256 --seed 2 --n-cond 2048 --n-target 2048 --workers 2 --no-progress &&
-  $PY -m polycubenet.synth --out $DATA/train --count 4096 --seed 1 --n-cond 2048 --n-target 2048 --workers 2 --no-progress &&
-  $PY -m polycubenet.train --data $DATA/train --eval-data $DATA/heldout --out $RUN --init $CKPT \
+  $SYNTH --out $DATA/heldout --count 256 --seed 2 --workers 2 &&
+  $SYNTH --out $DATA/train --count 4096 --seed 1 --workers 2 && $(link train 0) &&
+  $PY -m polycubenet.train --data $DATA/mix --eval-data $DATA/heldout --out $RUN --init $CKPT \
       $RECIPE --steps $STEPS --lr $LR --min-lr-ratio $MIN_LR_RATIO --warmup 50 --threads $THREADS \
-      --ckpt-every 100 --log-every 50 --no-progress --max-minutes $MINUTES
+      --seed $SEED --reload-every 200 --ckpt-every 100 --log-every 50 --no-progress --max-minutes $MINUTES
 " > "$RUN/train.out" 2>&1 &
-echo "training in the background: $RUN/train.out (recipe: $RECIPE)"
+# the further sets, one process, each shard linked as soon as it is written (the training re-reads the folder)
+setsid nohup bash -c "
+  while [ ! -e $DATA/mix/shard-000000.npz ]; do sleep 30; done
+  ( while true; do $(link train4 1); $(link train5cad 2); sleep 60; done ) & L=\$!
+  $SYNTH --out $DATA/train4 --count 8192 --seed 4 --workers 1 &&
+  $SYNTH --out $DATA/train5cad --count 8192 --seed 5 --workers 1 --cad-features
+  sleep 61; kill \$L
+" > "$RUN/data.out" 2>&1 &
+echo "training in the background: $RUN/train.out, more data: $RUN/data.out (recipe: $RECIPE)"
