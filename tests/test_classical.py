@@ -237,3 +237,20 @@ def test_space_planes_keeps_a_pinched_hole_open_for_the_extraction():
     assert poly.meta["genus"] == 1
     # planes already far apart do not move
     np.testing.assert_allclose(space_planes(X, F, labels, gap=0.02), X)
+
+
+def test_orientation_search_stops_at_its_face_budget(monkeypatch):
+    """When no orientation gives the part's genus, the search flattens at most
+    ``orientation_budget // faces`` of them (deterministic; the 12-hole plate tried all 9)."""
+    import polycubenet.classical as C
+
+    V, F = _canon(trimesh.creation.icosphere(subdivisions=2))
+    monkeypatch.setattr(C, "flat_structure", lambda *a, **k: {"reason": "forced", "genus": None})
+    calls = []
+    real = C._flatten
+    monkeypatch.setattr(C, "_flatten", lambda *a, **k: calls.append(1) or real(*a, **k))
+    *_, meta = classical_polycube(V, F, ClassicalConfig(orientation_budget=3 * len(F)))
+    assert len(calls) == 3 and len(meta["orientations_tried"]) == 3 and meta["orientations_allowed"] == 3
+    calls.clear()
+    *_, meta = classical_polycube(V, F, ClassicalConfig())  # 64000 // 1280 faces: every orientation
+    assert len(calls) == 9
