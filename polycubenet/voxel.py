@@ -78,7 +78,7 @@ from .polycube import (
 from .sampling import poisson_disk
 
 #: version of the construction (part of a flow's cache key): bump when the output changes
-VERSION = "1"
+VERSION = "2"  # 2: images on sharp features kept through the relaxation
 
 _FACE6 = ndimage.generate_binary_structure(3, 1)
 
@@ -133,6 +133,14 @@ class VoxelConfig:
         voxel solid (:class:`VoxelSource` sets it to the pipeline's ``n_polycube``).
     check_extract : bool
         Run that check (a resolution whose cloud the extraction misreads is skipped).
+    keep_features : bool
+        Boundary vertices whose closest point lies on a sharp feature of the part (dihedral
+        angle above ``feature_angle_deg``, within ``feature_tol``) keep that image through the
+        relaxation of step 4 (:func:`surface_images`).  Measured (voxel mode, 5000 hexes):
+        Hausdorff 2.00 -> 1.19 % on the gusset bracket, 0.82 -> 0.89 % on HexGen mount2, 1.16 ->
+        1.19 % on the threaded rod, unchanged on ant, fertility and the twisted hole; min SJ
+        unchanged on all.  Pinning only the part's corners did not help the gusset (2.14 %).
+    feature_angle_deg, feature_tol : float
     seed : int
     """
 
@@ -154,6 +162,9 @@ class VoxelConfig:
     untangle_rounds: int = 100
     n_points: int = 16384
     check_extract: bool = True
+    keep_features: bool = True
+    feature_angle_deg: float = 50.0
+    feature_tol: float = 1e-5
     seed: int = 0
 
 
@@ -363,9 +374,30 @@ def image_flips(scene, Xs: np.ndarray, Fs: np.ndarray, Ns: np.ndarray | None = N
     return tiny | (np.einsum("ij,ij->i", nrm, pn) <= 0.0)
 
 
-def surface_images(scene, Vp: np.ndarray, Fs: np.ndarray, config: VoxelConfig) -> tuple[np.ndarray, dict]:
+def on_sharp_features(X: np.ndarray, surf, tol: float) -> np.ndarray:
+    """``(n,) bool``: which points ``X`` lie within ``tol`` of a sharp feature edge of ``surf``
+    (a :class:`~polycubenet.pullback.PartSurface`)."""
+    from .pullback import _closest_on_segments
+
+    if len(X) == 0 or surf._seg_tree is None:
+        return np.zeros(len(X), dtype=bool)
+    k = min(8, len(surf.seg))
+    _, idx = surf._seg_tree.query(X, k=k)
+    idx = np.asarray(idx).reshape(len(X), k)
+    A, B = surf.V[surf.seg[idx, 0]], surf.V[surf.seg[idx, 1]]
+    _, d = _closest_on_segments(X[:, None, :], A, B)
+    return d.min(axis=1) <= tol
+
+
+def surface_images(scene, Vp: np.ndarray, Fs: np.ndarray, config: VoxelConfig,
+                   surf=None) -> tuple[np.ndarray, dict]:
     """Images on the part of the boundary vertices: closest points, relaxed (see the module
-    docstring).  Returns ``(Xs, report)``."""
+    docstring).  With ``surf`` (the part as a :class:`~polycubenet.pullback.PartSurface`), a
+    vertex whose closest point lies on a sharp feature edge or corner of the part keeps it
+    through the relaxation: where the voxel boundary meets the part's sharp edges (a box's
+    corners and edges on the bounding box), spreading would pull the image off the edge and
+    the mesh would cut the corner (HexGen-style gusset: 2.0 % Hausdorff at the base plate's
+    corners).  Returns ``(Xs, report)``."""
     nv = len(Vp)
     A = _adjacency(Fs, nv)
     deg = np.asarray(A.sum(1)).ravel()
@@ -373,11 +405,13 @@ def surface_images(scene, Vp: np.ndarray, Fs: np.ndarray, config: VoxelConfig) -
     bad0 = image_flips(scene, X0, Fs, N0)
     flips0 = int(bad0.sum())
     lam, mu = config.relax_step, config.anchor
+    pinned = np.zeros(nv, dtype=bool) if surf is None else on_sharp_features(X0, surf, config.feature_tol)
     X, Nx = X0, N0
     for _ in range(config.relax_rounds):
         D = (A @ X) / deg[:, None] - X
         D -= np.einsum("ij,ij->i", D, Nx)[:, None] * Nx  # tangential part only: no shrinking
         X, Nx = _closest(scene, (1 - mu) * (X + lam * D) + mu * X0)
+        X[pinned], Nx[pinned] = X0[pinned], N0[pinned]
     bad = image_flips(scene, X, Fs, Nx)
     best, best_n = X, int(bad.sum())
     if flips0 < best_n:
@@ -397,7 +431,7 @@ def surface_images(scene, Vp: np.ndarray, Fs: np.ndarray, config: VoxelConfig) -
         bad = image_flips(scene, X, Fs, Nx)
         if bad.sum() < best_n:
             best, best_n = X, int(bad.sum())
-    return best, {"flipped_closest": flips0, "flipped": best_n, "untangle_rounds": rounds}
+    return best, {"flipped_closest": flips0, "flipped": best_n, "untangle_rounds": rounds, "pinned": int(pinned.sum())}
 
 
 # --------------------------------------------------------------------------- the polycube
@@ -453,6 +487,11 @@ def voxel_polycube(V: np.ndarray, F: np.ndarray, config: VoxelConfig = VoxelConf
         except PolycubeError:
             genus = None
     scene = _scene(V, F)
+    surf = None
+    if config.keep_features:
+        from .pullback import PartSurface
+
+        surf = PartSurface(V, F, config.feature_angle_deg)
     part_pts = np.asarray(poisson_disk(V, F, 4096, seed=config.seed + 7).points)
     part_pts = np.vstack([part_pts, V[:: max(1, len(V) // 20000)]])
     tried = []
@@ -483,7 +522,7 @@ def voxel_polycube(V: np.ndarray, F: np.ndarray, config: VoxelConfig = VoxelConf
             tried.append(row)
             continue
         t1 = time.perf_counter()
-        Xs, irep = surface_images(scene, Vp, Fs, config)
+        Xs, irep = surface_images(scene, Vp, Fs, config, surf)
         row.update(irep, time_images=time.perf_counter() - t1)
         if config.check_extract:
             t2 = time.perf_counter()

@@ -90,7 +90,7 @@ def test_torus_voxel_polycube_has_the_parts_genus_and_images_on_the_part(torus_c
     import json
 
     json.dumps(meta)  # JSON-able
-    assert VERSION == "1"
+    assert VERSION == "2"
 
 
 def test_too_coarse_a_range_is_rejected(torus_c):
@@ -137,3 +137,36 @@ def test_source_cloud_extracts_and_pulls_back_valid(torus_c):
             break
     assert best.meta["valid"], best.meta.get("warnings")
     assert best.meta["sj_min"] > 0
+
+
+def test_images_on_the_parts_sharp_edges_stay_on_them():
+    """A voxel box slightly larger than the part (a box): the closest points of its edge vertices
+    lie on the part's edges.  The relaxation used to spread them over the faces (7 % of the
+    diagonal off the edge here), so the mesh cut the part's edges; with the part's features
+    (``surf``) they stay."""
+    import trimesh
+
+    from polycubenet.polycube import polycube_surface
+    from polycubenet.pullback import PartSurface, _closest_on_segments
+    from polycubenet.voxel import VoxelConfig, _scene, on_sharp_features, surface_images
+
+    m = trimesh.creation.box(extents=[1.0, 0.6, 0.4]).subdivide().subdivide().subdivide()
+    V, F = np.asarray(m.vertices), np.asarray(m.faces)
+    grid = [np.linspace(-0.5, 0.5, 11) * 1.02, np.linspace(-0.3, 0.3, 7) * 1.02, np.linspace(-0.2, 0.2, 5) * 1.02]
+    Vp, Fs = polycube_surface(*grid, np.ones((10, 6, 4), bool))
+    surf = PartSurface(V, F, 50.0)
+    X0, _ = surface_images(_scene(V, F), Vp, Fs, VoxelConfig(relax_rounds=0, untangle_rounds=0))
+    on = on_sharp_features(X0, surf, 1e-5)
+    assert on.sum() >= 40  # the 12 edges' vertices
+    A, B = surf.V[surf.seg[:, 0]], surf.V[surf.seg[:, 1]]
+
+    def off_edges(X):
+        return max(_closest_on_segments(x[None], A, B)[1].min() for x in X[on])
+
+    cfg = VoxelConfig(untangle_rounds=0)  # the relaxation alone (the untangling may still move a folded one)
+    free, _ = surface_images(_scene(V, F), Vp, Fs, cfg)
+    kept, rep = surface_images(_scene(V, F), Vp, Fs, cfg, surf)
+    assert off_edges(free) > 0.01
+    assert off_edges(kept) < 1e-6 and rep["pinned"] >= on.sum()
+    _, rep = surface_images(_scene(V, F), Vp, Fs, VoxelConfig(), surf)
+    assert rep["flipped"] == 0
