@@ -133,6 +133,12 @@ class VoxelConfig:
         voxel solid (:class:`VoxelSource` sets it to the pipeline's ``n_polycube``).
     check_extract : bool
         Run that check (a resolution whose cloud the extraction misreads is skipped).
+    check_plane_points : (int, float)
+        The plane filter of that check (points, fraction of the axis' points), with no relaxed
+        retry: the resolution must be recoverable with it.  It is the pipeline's filter before
+        session 6 (4 points, 0.2 %); with the pipeline's looser one (3, 0.1 %, then single-point
+        planes) coarser resolutions passed and meshed worse (HexGen fertility 32 -> 30 cells:
+        min SJ 0.303 -> 0.253, Hausdorff 1.01 -> 1.22 %; helical groove 32 -> 26 cells).
     keep_features : bool
         Boundary vertices whose closest point lies on a sharp feature of the part (dihedral
         angle above ``feature_angle_deg``, within ``feature_tol``) keep that image through the
@@ -162,6 +168,7 @@ class VoxelConfig:
     untangle_rounds: int = 100
     n_points: int = 16384
     check_extract: bool = True
+    check_plane_points: tuple = (4, 0.002)
     keep_features: bool = True
     feature_angle_deg: float = 50.0
     feature_tol: float = 1e-5
@@ -445,8 +452,12 @@ def _extract_check(Vp, Fs, labels, grid, occ, genus, config: VoxelConfig, extrac
 
     s = poisson_disk(Vp, Fs, config.n_points, seed=config.seed + 31)
     P, N, _ = remove_outliers(s.points, DIRECTIONS[labels[s.face_ids]])
+    # the extraction with the check's own plane filter and no relaxed retry (VoxelConfig.check_plane_points)
+    strict = dataclasses.replace(extract_config or ExtractConfig(), relaxed_plane_points=None,
+                                 min_plane_points=config.check_plane_points[0],
+                                 min_plane_fraction=config.check_plane_points[1])
     try:
-        poly = extract(P, N, genus=genus, config=extract_config or ExtractConfig())
+        poly = extract(P, N, genus=genus, config=strict)
     except PolycubeError as exc:
         return f"extract: {exc}"
     truth = Polycube(grid[0], grid[1], grid[2], occ, meta={})
