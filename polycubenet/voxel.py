@@ -144,8 +144,11 @@ class VoxelConfig:
         angle above ``feature_angle_deg``, within ``feature_tol``) keep that image through the
         relaxation of step 4 (:func:`surface_images`).  Measured (voxel mode, 5000 hexes):
         Hausdorff 2.00 -> 1.19 % on the gusset bracket, 0.82 -> 0.89 % on HexGen mount2, 1.16 ->
-        1.19 % on the threaded rod, unchanged on ant, fertility and the twisted hole; min SJ
-        unchanged on all.  Pinning only the part's corners did not help the gusset (2.14 %).
+        1.19 % on the threaded rod, unchanged on ant and fertility; min SJ unchanged on all.  In
+        ``bench_classical`` (the voxel fallback of the classical chain) also the twisted hole 1.32 ->
+        0.81 % and the 12-hole plate 0.84 -> 0.74 %, but the helical groove 0.89 -> 1.07 % (its
+        images are fold-free at a coarser resolution, 26 cells instead of 32, which then wins).
+        Pinning only the part's corners did not help the gusset (2.14 %).
     feature_angle_deg, feature_tol : float
     seed : int
     """
@@ -403,8 +406,8 @@ def surface_images(scene, Vp: np.ndarray, Fs: np.ndarray, config: VoxelConfig,
     vertex whose closest point lies on a sharp feature edge or corner of the part keeps it
     through the relaxation: where the voxel boundary meets the part's sharp edges (a box's
     corners and edges on the bounding box), spreading would pull the image off the edge and
-    the mesh would cut the corner (HexGen-style gusset: 2.0 % Hausdorff at the base plate's
-    corners).  Returns ``(Xs, report)``."""
+    the mesh would cut the corner (the hard set's gusset bracket: 2.0 % Hausdorff at its base
+    plate's corners and edges).  Returns ``(Xs, report)``."""
     nv = len(Vp)
     A = _adjacency(Fs, nv)
     deg = np.asarray(A.sum(1)).ravel()
