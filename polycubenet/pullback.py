@@ -496,6 +496,17 @@ class PartSurface:
 
     # ---- queries
 
+    def feature_distance(self, X: np.ndarray, k: int = 8) -> np.ndarray:
+        """``(n,)`` distance of each point ``X`` to the nearest sharp feature edge (inf without any)."""
+        X = np.asarray(X, dtype=np.float64)
+        if len(X) == 0 or self._seg_tree is None:
+            return np.full(len(X), np.inf)
+        k = min(k, len(self.seg))
+        _, idx = self._seg_tree.query(X, k=k)
+        idx = np.asarray(idx).reshape(len(X), k)
+        _, d = _closest_on_segments(X[:, None, :], self.V[self.seg[idx, 0]], self.V[self.seg[idx, 1]])
+        return d.min(axis=1)
+
     def closest(self, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Free closest points ``(n, 3)``, distances ``(n,)`` and triangle ids ``(n,)``."""
         return _closest(self.scene, Q)

@@ -387,16 +387,7 @@ def image_flips(scene, Xs: np.ndarray, Fs: np.ndarray, Ns: np.ndarray | None = N
 def on_sharp_features(X: np.ndarray, surf, tol: float) -> np.ndarray:
     """``(n,) bool``: which points ``X`` lie within ``tol`` of a sharp feature edge of ``surf``
     (a :class:`~polycubenet.pullback.PartSurface`)."""
-    from .pullback import _closest_on_segments
-
-    if len(X) == 0 or surf._seg_tree is None:
-        return np.zeros(len(X), dtype=bool)
-    k = min(8, len(surf.seg))
-    _, idx = surf._seg_tree.query(X, k=k)
-    idx = np.asarray(idx).reshape(len(X), k)
-    A, B = surf.V[surf.seg[idx, 0]], surf.V[surf.seg[idx, 1]]
-    _, d = _closest_on_segments(X[:, None, :], A, B)
-    return d.min(axis=1) <= tol
+    return surf.feature_distance(X) <= tol
 
 
 def surface_images(scene, Vp: np.ndarray, Fs: np.ndarray, config: VoxelConfig,
@@ -500,12 +491,12 @@ def voxel_polycube(V: np.ndarray, F: np.ndarray, config: VoxelConfig = VoxelConf
             genus = surface_genus(F)
         except PolycubeError:
             genus = None
-    scene = _scene(V, F)
     surf = None
     if config.keep_features:
         from .pullback import PartSurface
 
         surf = PartSurface(V, F, config.feature_angle_deg)
+    scene = surf.scene if surf is not None else _scene(V, F)  # the same raycasting scene of the part
     part_pts = np.asarray(poisson_disk(V, F, 4096, seed=config.seed + 7).points)
     part_pts = np.vstack([part_pts, V[:: max(1, len(V) // 20000)]])
     tried = []
