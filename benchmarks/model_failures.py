@@ -178,7 +178,8 @@ def main(argv=None) -> int:
 
         meta = torch.load(args.checkpoint, map_location="cpu", weights_only=False)
         point = {"checkpoint": Path(args.checkpoint).name, "step": meta.get("step"),
-                 "cpu_hours": meta.get("cpu_hours"), "diffusion": meta.get("diffusion"),
+                 "cpu_hours": meta.get("cpu_hours"), "gpu_hours": meta.get("gpu_hours") or 0.0,
+                 "diffusion": meta.get("diffusion"),
                  "pairs": ev["pairs"], "n_out": args.n_out, "n_generated": ev.get("n_generated"), "steps": args.steps,
                  "anchor_normals": bool((meta.get("model_config") or {}).get("anchor_normals")),
                  "label_accuracy": ev.get("label_accuracy_median"),

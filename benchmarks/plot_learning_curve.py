@@ -1,4 +1,5 @@
-"""The shipped model's learning curve across sessions: cumulative CPU-hours -> held-out metrics.
+"""The shipped model's learning curve across sessions: cumulative CPU-hours (and GPU-hours, for the
+runs made on a lent accelerator: ``scripts/device_train.sh``) -> held-out metrics.
 
     python benchmarks/plot_learning_curve.py [--curve benchmarks/results/learning_curve.jsonl] \\
         [--out docs/learning_curve.png]
@@ -28,15 +29,16 @@ def main(argv=None) -> int:
     pts = [json.loads(line) for line in Path(args.curve).read_text().splitlines() if line.strip()]
     for p in pts:
         p["cpu_hours"] = p.get("cpu_hours") or SESSION1_CPU_HOURS
-    pts.sort(key=lambda p: p["cpu_hours"])
-    print(f"{'CPU-h':>6} {'recipe':<30} {'extract':>7} {'steps':>5} {'Chamfer':>8} {'identity':>8} {'labels':>6} "
+        p["gpu_hours"] = p.get("gpu_hours") or 0.0
+    pts.sort(key=lambda p: (p["cpu_hours"], p["gpu_hours"]))
+    print(f"{'CPU-h':>6} {'GPU-h':>5} {'recipe':<30} {'extract':>7} {'steps':>5} {'Chamfer':>8} {'identity':>8} {'labels':>6} "
           f"{'exact':>6} {'exact id':>8} {'genus<=2':>8} {'parts':>6}")
     for p in pts:
         d = p.get("diffusion") or {}
         recipe = (f"{d.get('prediction', 'eps')}/{d.get('schedule', 'cosine')}" + ("/anch" if p.get("anchored") else "")
                   + ("+normals" if p.get("anchor_normals") else ""))
         lab = p.get("label_accuracy")
-        print(f"{p['cpu_hours']:>6.2f} {recipe:<30} {p.get('extraction', 1):>7} {p['steps']:>5} {p['chamfer_median']:>8.4f} "
+        print(f"{p['cpu_hours']:>6.2f} {p['gpu_hours']:>5.2f} {recipe:<30} {p.get('extraction', 1):>7} {p['steps']:>5} {p['chamfer_median']:>8.4f} "
               f"{p.get('chamfer_identity') or float('nan'):>8.4f} {lab if lab is not None else float('nan'):>6.3f} "
               f"{p['exact']:>6.0%} {p['exact_identity'] if p.get('exact_identity') is not None else float('nan'):>8.0%} "
               f"{(p.get('genus_match_genus_le2') or 0):>8.0%} {p['parts_accepted']:>3}/{p['parts']}")
@@ -62,6 +64,10 @@ def main(argv=None) -> int:
         ax[1].plot(*zip(*idx), "kx--", label="exact, identity (no model)")
     ax[1].plot(x, [p.get("genus_match_genus_le2") or 0 for p in pts], "s-", label="genus match (genus <= 2)")
     ax[1].plot(x, [p["parts_accepted"] / max(1, p["parts"]) for p in pts], "^-", label="example parts accepted")
+    for xi, p in zip(x, pts):  # points with accelerator time behind them (at the CPU-hours they started from)
+        if p["gpu_hours"] > 0:
+            ax[1].annotate(f"+{p['gpu_hours']:.2f} GPU-h", (xi, p["exact"]), fontsize=6, xytext=(-40, 8),
+                           textcoords="offset points")
     ax[1].set_ylim(-0.05, 1.05)
     ax[1].set_xlabel("cumulative CPU-hours")
     ax[1].legend(fontsize=7)

@@ -71,41 +71,50 @@ class TrainConfig:
     t_bias: float = 1.0  # > 1: timesteps drawn towards the noisy end (Diffusion.training_loss)
     max_genus: int = -1  # curriculum: train only on pairs of genus <= this (-1: all)
     reload_every: int = 0  # re-read the shard folder every this many steps (0: never), for shards still being written
+    fit_steps: bool = False  # with a time limit: re-fit `steps` to the measured pace, so the cosine ends with the time
 
 
 class PairData:
     """All pairs of a shard folder in memory (float32), with per-draw subsampling."""
 
-    def __init__(self, directory: str | Path, limit: int | None = None, max_genus: int = -1):
+    def __init__(self, directory: str | Path, limit: int | None = None, max_genus: int = -1,
+                 cache: dict | None = None):
+        """``cache`` (a dict the caller keeps) holds each shard's arrays and anchor normals by path,
+        so re-reading a growing folder (``reload_every``) loads and processes only the new shards."""
         shards = list_shards(directory)
         if not shards:
             raise FileNotFoundError(f"no shard-*.npz in {directory} (make them with python -m polycubenet.synth)")
-        cond, tp, tn, genus, seeds, tos, cn = [], [], [], [], [], [], []
+        self._cache = {} if cache is None else cache
+        names = ("cond_points", "cond_normals", "target_points", "target_normals", "target_on_shape", "genus", "seeds")
+        parts: list[dict] = []
+        self._shard_paths: list[Path] = []
         n = 0
         for path in shards:
-            s = load_shard(path)
-            cond.append(s["cond_points"])
-            tp.append(s["target_points"])
-            tn.append(s["target_normals"])
-            tos.append(s["target_on_shape"])
-            cn.append(s["cond_normals"])
-            genus.append(s["genus"])
-            seeds.append(s["seeds"])
-            n += len(s)
+            key = str(path.resolve())
+            if key not in self._cache:
+                s = load_shard(path)
+                self._cache[key] = {k: s[k] for k in names}
+            parts.append(self._cache[key])
+            self._shard_paths.append(path)
+            n += len(parts[-1]["genus"])
             if limit is not None and n >= limit:
                 break
-        self.cond = np.concatenate(cond)[:limit]
-        self.target_points = np.concatenate(tp)[:limit]
-        self.target_normals = np.concatenate(tn)[:limit]
-        self.target_on_shape = np.concatenate(tos)[:limit]  # the part's point of each target point
-        self.cond_normals = np.concatenate(cn)[:limit]
+        cat = {k: np.concatenate([d[k] for d in parts])[:limit] for k in names}
+        self.cond = cat["cond_points"]
+        self.target_points = cat["target_points"]
+        self.target_normals = cat["target_normals"]
+        self.target_on_shape = cat["target_on_shape"]  # the part's point of each target point
+        self.cond_normals = cat["cond_normals"]
         self._anchor_normals: np.ndarray | None = None
-        self.genus = np.concatenate(genus)[:limit]
-        self.seeds = np.concatenate(seeds)[:limit]
+        self._limit = limit
+        self._keep: np.ndarray | None = None
+        self.genus = cat["genus"]
+        self.seeds = cat["seeds"]
         if max_genus >= 0:
             keep = self.genus <= max_genus
             if not keep.any():
                 raise ValueError(f"no pair of genus <= {max_genus} in {directory}")
+            self._keep = keep
             for name in ("cond", "cond_normals", "target_points", "target_normals", "target_on_shape", "genus", "seeds"):
                 setattr(self, name, getattr(self, name)[keep])
         self.directory = Path(directory)
@@ -117,15 +126,22 @@ class PairData:
     @property
     def anchor_normals(self) -> np.ndarray:
         """The part's unit normal at each target point's part point (``target_on_shape``): the
-        normal of the nearest condition point (computed once, on first use)."""
+        normal of the nearest condition point (computed once per shard, on first use)."""
         if self._anchor_normals is None:
             from scipy.spatial import cKDTree
 
-            out = np.empty_like(self.target_on_shape)
-            for i in range(len(self)):
-                _, j = cKDTree(self.cond[i]).query(self.target_on_shape[i])
-                out[i] = self.cond_normals[i][j]
-            self._anchor_normals = out
+            per_shard = []
+            for path in self._shard_paths:
+                d = self._cache[str(path.resolve())]
+                if "anchor_normals" not in d:
+                    out = np.empty_like(d["target_on_shape"])
+                    for i in range(len(out)):
+                        _, j = cKDTree(d["cond_points"][i]).query(d["target_on_shape"][i])
+                        out[i] = d["cond_normals"][i][j]
+                    d["anchor_normals"] = out
+                per_shard.append(d["anchor_normals"])
+            an = np.concatenate(per_shard)[:self._limit]
+            self._anchor_normals = an if self._keep is None else an[self._keep]
         return self._anchor_normals
 
     def batch(self, idx: np.ndarray, points: int, rng: np.random.Generator, cfg: TrainConfig | None = None,
@@ -136,8 +152,7 @@ class PairData:
         augmented alike."""
         B = len(idx)
         N, M = self.cond.shape[1], self.target_points.shape[1]
-        ci = np.stack([rng.choice(N, size=points, replace=points > N) for _ in range(B)])
-        ti = np.stack([rng.choice(M, size=points, replace=points > M) for _ in range(B)])
+        ci, ti = _subsample(rng, B, N, points), _subsample(rng, B, M, points)
         g = np.take_along_axis(self.cond[idx], ci[..., None], axis=1).astype(np.float64)
         p = np.take_along_axis(self.target_points[idx], ti[..., None], axis=1).astype(np.float64)
         nrm = np.take_along_axis(self.target_normals[idx], ti[..., None], axis=1).astype(np.float32)
@@ -160,6 +175,13 @@ class PairData:
         if an is not None:
             a = np.concatenate([a, an], axis=-1)
         return out + (torch.from_numpy(a.astype(np.float32)),) if anchors else out
+
+
+def _subsample(rng: np.random.Generator, B: int, N: int, points: int) -> np.ndarray:
+    """``(B, points)`` indices into ``N`` points: distinct within a row when ``points <= N``."""
+    if points > N:
+        return rng.integers(0, N, size=(B, points))
+    return np.argpartition(rng.random((B, N)), points - 1, axis=1)[:, :points]
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:
@@ -271,6 +293,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
     torch.manual_seed(cfg.seed)
     model = PolycubeNet(mcfg).to(dev)
     cpu_before = float(prior_cpu_hours) * 3600.0  # CPU-seconds of training behind this run's weights
+    gpu_before = 0.0  # GPU-seconds likewise (wall time of runs on an accelerator, which add no CPU-hours)
     lineage: list = []
     ckpt = run / "last.pt"
     if init is not None and not (resume and ckpt.exists()):
@@ -288,6 +311,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
             print(f"[train] --init {init}: {len(take)} tensors taken, {len(fresh)} kept fresh: {', '.join(fresh)}",
                   flush=True)
         cpu_before = (float(src.get("cpu_hours") or 0.0) + float(prior_cpu_hours)) * 3600.0
+        gpu_before = float(src.get("gpu_hours") or 0.0) * 3600.0
         lineage = list(src.get("lineage", [])) + [{"init": str(init), "step": src.get("step"),
                                                    "diffusion": src.get("diffusion")}]
     ema = copy.deepcopy(model).eval()
@@ -305,11 +329,13 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
         opt.load_state_dict(s["optimizer"])
         step = int(s["step"])
         cpu_before = float(s.get("cpu_hours", 0.0)) * 3600.0
+        gpu_before = float(s.get("gpu_hours") or 0.0) * 3600.0
         lineage = list(s.get("lineage", []))
         if s.get("diffusion") and Diffusion.from_dict(s["diffusion"]).to_dict() != diffusion.to_dict():
             raise ValueError(f"{ckpt} was trained with diffusion {s['diffusion']}, not {diffusion.to_dict()}; "
                              f"use a new --out folder (with --init {ckpt} to start from it)")
-    data = PairData(data_dir, max_genus=cfg.max_genus)
+    shard_cache: dict = {}  # each shard's arrays, loaded once however often the folder is re-read
+    data = PairData(data_dir, max_genus=cfg.max_genus, cache=shard_cache)
     heldout = None
     if eval_dir is not None and rank == 0:
         ev = PairData(eval_dir, limit=cfg.eval_pairs)
@@ -329,6 +355,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
     t_start = time.time()
     c_start = time.process_time()
     window: list[float] = []
+    fit_from: tuple[int, float] | None = None
     metrics: dict = {}
     log_path = run / "log.jsonl"
     bar = None
@@ -338,7 +365,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
         bar = tqdm(total=cfg.steps, initial=step, desc="train", unit="step")
     while step < cfg.steps:
         if cfg.reload_every and step % cfg.reload_every == 0 and len(list_shards(data_dir)) != data.shards:
-            data = PairData(data_dir, max_genus=cfg.max_genus)
+            data = PairData(data_dir, max_genus=cfg.max_genus, cache=shard_cache)
             if rank == 0:
                 print(f"[train] step {step}: {len(data)} pairs from {data.shards} shards", flush=True)
         rng = np.random.default_rng([cfg.seed, step, rank])
@@ -363,7 +390,16 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
         last = step == cfg.steps
         out_of_time = ((max_seconds is not None and time.time() - t_start > max_seconds)
                        or (max_cpu_seconds is not None and time.process_time() - c_start > max_cpu_seconds))
-        cpu_hours = (cpu_before + time.process_time() - c_start) / 3600.0
+        on_gpu = dev.type == "cuda"
+        cpu_hours = (cpu_before + (0.0 if on_gpu else time.process_time() - c_start)) / 3600.0
+        gpu_hours = (gpu_before + (time.time() - t_start if on_gpu else 0.0)) / 3600.0
+        if cfg.fit_steps and max_seconds is not None and step % cfg.log_every == 0:
+            if fit_from is None:  # the pace is measured from the first log on (start-up excluded)
+                fit_from = (step, time.time())
+            elif time.time() > fit_from[1] + 1.0:
+                pace = (step - fit_from[0]) / (time.time() - fit_from[1])
+                left = max_seconds - (time.time() - t_start)
+                cfg = dataclasses.replace(cfg, steps=max(step + 1, int(step + pace * left)))
         if ddp:  # every rank stops together when rank 0 runs out of time
             flag = torch.tensor([int(out_of_time)], device=dev)
             torch.distributed.broadcast(flag, 0)
@@ -371,6 +407,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
         if rank == 0 and (step % cfg.log_every == 0 or last or out_of_time):
             metrics = {"step": step, "loss_l2": float(np.mean(window)), "lr": lr_at(step - 1, cfg), "grad_norm": gnorm,
                        "seconds": round(time.time() - t_start, 1), "cpu_hours": round(cpu_hours, 4),
+                       "gpu_hours": round(gpu_hours, 4), "steps": cfg.steps,
                        "pairs": len(data), "loss": cfg.loss}
             window = []
             if heldout is not None:
@@ -387,7 +424,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
                 "train_config": dataclasses.asdict(cfg), "data": str(data.directory), "pairs": len(data),
                 "model": model.state_dict(), "ema": ema.state_dict(), "optimizer": opt.state_dict(),
                 "step": step, "metrics": metrics, "world_size": world, "device": str(dev),
-                "cpu_hours": cpu_hours, "lineage": lineage,
+                "cpu_hours": cpu_hours, "gpu_hours": gpu_hours, "lineage": lineage,
             })
         if out_of_time:
             break
@@ -415,7 +452,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="CPU-hours of training behind --init that its file does not record (added to what it does)")
     ap.add_argument("--no-progress", action="store_true")
     for f in dataclasses.fields(TrainConfig):
-        ap.add_argument("--" + f.name.replace("_", "-"), type=type(f.default), default=f.default)
+        kind = type(f.default)
+        if kind is bool:  # --flag true|false (bool("false") would be True)
+            kind = lambda v: str(v).lower() in ("1", "true", "yes", "on")  # noqa: E731
+        ap.add_argument("--" + f.name.replace("_", "-"), type=kind, default=f.default)
     args = ap.parse_args(argv)
     cfg = TrainConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)})
     out = train(args.data, args.out, cfg, eval_dir=args.eval_data, resume=not args.no_resume, device=args.device,

@@ -71,6 +71,7 @@ def publish(train_ckpt: str | Path, out: str | Path, metrics: dict | None = None
         # cumulative CPU-hours of training behind these weights and where they came from, so a
         # run started from the published file (``train --init``) continues the count
         "cpu_hours": s.get("cpu_hours"),
+        "gpu_hours": s.get("gpu_hours") or 0.0,  # and GPU-hours (runs on an accelerator), which CPU-hours leave out
         "lineage": s.get("lineage", []),
         **(extra or {}),
     }
