@@ -162,10 +162,10 @@ def check_occupancy(occ: np.ndarray) -> str | None:
         return "empty occupancy"
     e = edge_contacts(occ)
     if len(e):
-        return f"non-manifold: {len(e)} edge-only contact(s), first along axis {e[0, 0]} at vertex {tuple(e[0, 1:])}"
+        return f"non-manifold: {len(e)} edge-only contact(s), first along axis {int(e[0, 0])} at vertex {tuple(int(i) for i in e[0, 1:])}"
     v = nonmanifold_vertices(occ)
     if len(v):
-        return f"non-manifold: {len(v)} vertex-only contact(s), first at vertex {tuple(v[0])}"
+        return f"non-manifold: {len(v)} vertex-only contact(s), first at vertex {tuple(int(i) for i in v[0])}"
     _, n_solid = ndimage.label(occ, structure=_FACE6)
     if n_solid != 1:
         return f"disconnected: {n_solid} solid components"

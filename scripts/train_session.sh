@@ -24,6 +24,7 @@ PY=${PY:-.venv/bin/python}
 LR=${LR:-3e-4}
 STEPS=${STEPS:-1000000}
 MIN_LR_RATIO=${MIN_LR_RATIO:-1.0}
+BATCH=${BATCH:-12}  # pairs per step on a CPU (a checkpoint trained on a GPU records its larger batch)
 SEED=${SEED:-0}  # the pair draw of the run: another value for another session's run
 CKPT=polycubenet/checkpoints/polycubenet-cpu.pt
 mkdir -p "$RUN"
@@ -51,7 +52,7 @@ setsid nohup bash -c "
   $SYNTH --out $DATA/heldout --count 256 --seed 2 --workers 2 &&
   $SYNTH --out $DATA/train --count 4096 --seed 1 --workers 2 && $(link train 0) &&
   $PY -m polycubenet.train --data $DATA/mix --eval-data $DATA/heldout --out $RUN --init $CKPT \
-      $RECIPE --steps $STEPS --lr $LR --min-lr-ratio $MIN_LR_RATIO --warmup 50 --threads $THREADS \
+      $RECIPE --batch $BATCH --steps $STEPS --lr $LR --min-lr-ratio $MIN_LR_RATIO --warmup 50 --threads $THREADS \
       --seed $SEED --reload-every 200 --ckpt-every 100 --log-every 50 --no-progress --max-minutes $MINUTES
 " > "$RUN/train.out" 2>&1 &
 # the further sets, one process, each shard linked as soon as it is written (the training re-reads the folder)

@@ -351,3 +351,15 @@ def test_shard_contents_and_loader(tmp_path):
     assert _sha(tmp_path / "shard-00000.npz") == before
     # other parameters in the same folder are refused
     assert synth_main(["--out", str(tmp_path), "--count", "3", "--seed", "5", "--no-progress"]) == 2
+
+
+def test_occupancy_problems_read_as_plain_sentences():
+    edge = np.zeros((3, 3, 2), dtype=bool)
+    edge[0, 0, :] = edge[1, 1, :] = True  # two columns meeting along an edge only
+    corner = np.zeros((2, 2, 2), dtype=bool)
+    corner[0, 0, 0] = corner[1, 1, 1] = True  # two cells meeting at a vertex only
+    apart = np.zeros((3, 1, 1), dtype=bool)
+    apart[0] = apart[2] = True
+    assert check_occupancy(edge) == "non-manifold: 2 edge-only contact(s), first along axis 2 at vertex (1, 1, 0)"
+    assert check_occupancy(corner) == "non-manifold: 1 vertex-only contact(s), first at vertex (1, 1, 1)"
+    assert check_occupancy(apart) == "disconnected: 2 solid components"

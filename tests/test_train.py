@@ -218,3 +218,52 @@ def test_an_anchor_normals_model_starts_as_the_anchored_one_it_widens(shards, tm
     torch.testing.assert_close(a, b, atol=1e-3, rtol=1e-3)  # float16 publishing
     with pytest.raises(ValueError, match="anchors have 3 channels"):
         new(x, t, cond, anchor=anchor)
+
+
+def test_a_growing_folder_is_reread_loading_only_the_new_shards(shards, tmp_path, monkeypatch):
+    import shutil
+
+    import polycubenet.train as tr
+
+    grow = tmp_path / "grow"
+    grow.mkdir()
+    files = sorted(shards.glob("shard-*.npz"))
+    shutil.copy(files[0], grow / files[0].name)
+    loads = []
+    real = tr.load_shard
+    monkeypatch.setattr(tr, "load_shard", lambda p: loads.append(p.name) or real(p))
+    cache: dict = {}
+    first = PairData(grow, cache=cache)
+    first_normals = first.anchor_normals.copy()
+    shutil.copy(files[1], grow / files[1].name)
+    second = PairData(grow, cache=cache)
+    assert loads == [files[0].name, files[1].name]  # the first shard was not read again
+    assert len(second) == 6 and np.array_equal(second.cond[:3], first.cond)
+    # anchor normals: the cached first shard's plus the new one's, as an uncached read computes them
+    fresh = PairData(grow).anchor_normals
+    assert np.array_equal(second.anchor_normals, fresh) and np.array_equal(fresh[:3], first_normals)
+    # subsampled points are distinct within a pair
+    ci = tr._subsample(np.random.default_rng(0), 5, 128, 100)
+    assert ci.shape == (5, 100) and all(len(set(row)) == 100 for row in ci)
+
+
+def test_fit_steps_ends_the_cosine_with_the_time_limit(shards, tmp_path):
+    cfg = dataclasses.replace(CFG, steps=10**6, warmup=2, log_every=2, ckpt_every=10**6, lr=1e-3, min_lr_ratio=0.1,
+                              fit_steps=True)
+    out = train(shards, tmp_path / "run", cfg, progress=False, max_seconds=6.0)
+    assert out["step"] < 10**6
+    # the schedule was re-fitted to the pace: it ends near its floor, not at the start of a 10**6-step cosine
+    assert out["lr"] < 0.2 * cfg.lr
+    s = torch.load(tmp_path / "run" / "last.pt", map_location="cpu", weights_only=False)
+    assert s["gpu_hours"] == 0.0 and s["cpu_hours"] > 0  # a CPU run adds CPU-hours only
+
+
+def test_boolean_flags_parse_false_as_false(tmp_path, shards):
+    from polycubenet.train import main
+
+    # --fit-steps false with a time limit runs the full (short) schedule instead of fitting it
+    assert main(["--data", str(shards), "--out", str(tmp_path / "r"), "--preset", "tiny", "--steps", "4",
+                 "--batch", "2", "--points", "32", "--warmup", "1", "--threads", "1", "--fit-steps", "false",
+                 "--max-minutes", "5", "--no-progress"]) == 0
+    s = torch.load(tmp_path / "r" / "last.pt", map_location="cpu", weights_only=False)
+    assert s["train_config"]["fit_steps"] is False and s["step"] == 4
