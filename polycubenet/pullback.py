@@ -204,6 +204,11 @@ class PullbackConfig:
     final_coverage_follow : bool
         In the final fit, a surface node's inner pillow copy moves with it (keeps the pillow
         hex's shape, so fewer moves are undone).
+    retry_min_sj : float
+        An invalid result at least this good is pulled back once more without the coverage fit.
+    snap_corners : bool
+        After the final fit, bring a surface node onto each corner of the part (three or more sharp
+        edges) that no node is near (:func:`guarded_corner_snap`, under the same quality guard).
     """
 
     pillow: bool = True
@@ -248,6 +253,7 @@ class PullbackConfig:
     #: inverted hexes can tip; a folded map (-0.9 on the helical groove, -0.1 on HexGen mount2) never
     #: did in the 4 variants measured on those, which cost 36-62 s before the voxel polycube meshed them
     retry_min_sj: float = -0.05
+    snap_corners: bool = True
 
     def __post_init__(self):
         if self.interior not in ("correction", "harmonic"):
@@ -419,6 +425,7 @@ class PartSurface:
     seg : (S, 2) int64, sharp feature edges (vertex ids)
     seg_curve : (S,) int64, feature curve of each segment (curves split at feature vertices)
     feature_vertices : (K,) int64, vertex ids where curves end, branch or turn sharply
+    branch_vertices : (B,) int64, the part's corners: vertex ids where three or more sharp edges meet
     labels : (nf,) int64 or None, chart label of each triangle (after :meth:`set_labels`)
     """
 
@@ -455,6 +462,7 @@ class PartSurface:
         if nseg == 0:
             self.seg_curve = np.zeros(0, dtype=np.int64)
             self.feature_vertices = np.zeros(0, dtype=np.int64)
+            self.branch_vertices = np.zeros(0, dtype=np.int64)
             self._seg_tree = None
             self._fv_tree = None
             return
@@ -486,6 +494,7 @@ class PartSurface:
         G = sp.coo_matrix((np.ones(int(smooth.sum())), (s_a[smooth], s_b[smooth])), shape=(nseg, nseg))
         _, self.seg_curve = connected_components(G, directed=False)
         self.seg_curve = self.seg_curve.astype(np.int64)
+        self.branch_vertices = np.flatnonzero(deg >= 3)  # where three or more sharp curves meet
         corner = deg.copy() > 0
         corner &= deg != 2
         corner[v[~smooth]] = True
@@ -1118,6 +1127,82 @@ def guarded_coverage(
         X, sj = Xn, sj_new
         undone.append(n_undone)
     return X, {"guarded_s2h": hist_s, "guarded_h2s": hist_h, "guarded_undone": undone}
+
+
+def guarded_corner_snap(
+    surf: PartSurface,
+    X: np.ndarray,
+    hexes: np.ndarray,
+    nodes: np.ndarray,
+    hloc: np.ndarray,
+    sj_bar: float,
+    follow: np.ndarray | None = None,
+    min_gap: float = 0.25 * tol.HAUSDORFF_REL_MAX,
+    radius: float = 2.0,
+    fractions: tuple = (1.0, 0.75, 0.5, 0.25),
+) -> tuple[np.ndarray, dict]:
+    """Put a surface node on every corner of the part (``surf.branch_vertices``: three or more sharp
+    edges meet there) that no node of the finished mesh is within ``min_gap`` of (diagonal units).
+
+    The coverage fit pulls a node towards a corner only as much as the many samples around it
+    allow, so a box corner cut by the mesh (one surface point, hence the Hausdorff distance) can
+    stay 1 % of the diagonal off.  Nearest corners first, the nearest surface node within ``radius``
+    x its local edge length moves onto the corner (with ``follow``, its inner pillow copy by the
+    same vector), the largest of ``fractions`` of the way that passes, and only when (a) no hex around it falls below
+    ``min(sj_bar, its SJ before)`` and (b) its boundary quads (centres and edge midpoints) end no
+    farther from the part than before or than half the Hausdorff bar.  A valid mesh stays valid.
+
+    Returns ``X`` and ``{"corner_snaps": moved, "corner_snaps_refused": left}``.
+    """
+    info = {"corner_snaps": 0, "corner_snaps_refused": 0}
+    fv = surf.branch_vertices
+    if not len(fv) or not len(nodes):
+        return X, info
+    C = surf.V[fv]
+    d, j = cKDTree(X[nodes]).query(C)
+    todo = np.flatnonzero((d > min_gap) & (d <= radius * hloc[j]))
+    if not len(todo):
+        return X, info
+    X = X.copy()
+    P = len(X)
+    inc = sp.csc_matrix(_hex_incidence(hexes, P)[0])
+    quads = boundary_quads(hexes)
+    node_quads = sp.csr_matrix((np.ones(quads.size, dtype=bool), (quads.ravel(), np.repeat(np.arange(len(quads)), 4))),
+                               shape=(P, len(quads)))
+    if follow is not None:
+        follow = np.concatenate([follow, np.full(max(0, P - len(follow)), -1, dtype=np.int64)])
+
+    def quad_gap(Y, qrows):
+        q = Y[quads[qrows]]  # (k, 4, 3)
+        pts = np.concatenate([q.mean(axis=1), 0.5 * (q + np.roll(q, -1, axis=1)).reshape(-1, 3)])
+        return float(surf.closest(pts)[1].max())
+
+    def hex_sj(Y, rows):
+        sj, dg = scaled_jacobian_and_degenerate(Y, hexes[rows])
+        return np.where(dg, -np.inf, sj)
+
+    used: set = set()
+    for ci in todo[np.argsort(d[todo])]:
+        n = int(nodes[j[ci]])
+        if n in used:
+            continue
+        used.add(n)
+        group = [n] + ([int(follow[n])] if follow is not None and follow[n] >= 0 else [])
+        rows = np.unique(np.concatenate([inc[:, m].indices for m in group]))
+        qrows = node_quads[n].indices
+        before = hex_sj(X, rows)
+        gap_bar = max(quad_gap(X, qrows), 0.5 * tol.HAUSDORFF_REL_MAX)
+        for frac in fractions:
+            v = frac * (C[ci] - X[n])
+            Y = X.copy()
+            Y[group] += v
+            if (hex_sj(Y, rows) >= np.minimum(before, sj_bar) - 1e-9).all() and quad_gap(Y, qrows) <= gap_bar:
+                X = Y
+                info["corner_snaps"] += 1
+                break
+        else:
+            info["corner_snaps_refused"] += 1
+    return X, info
 
 
 # --------------------------------------------------------------------------- optimisation
@@ -1753,6 +1838,9 @@ def _pull_back_once(
             follow=follow,
         )
         proj_info.update(gi)
+        if config.snap_corners:
+            X, ci = guarded_corner_snap(surf, X, hexes, bs.nodes, hloc, config.final_coverage_sj, follow=follow)
+            proj_info.update(ci)
         timings["coverage_final"] = timings.get("coverage_final", 0.0) + time.perf_counter() - t0
         stages["coverage_final"] = _stats(X, hexes)
         return X

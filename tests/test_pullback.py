@@ -16,6 +16,7 @@ from polycubenet.pullback import (
     boundary_face_counts,
     chart_labels,
     classify_boundary,
+    guarded_corner_snap,
     guarded_smooth,
     harmonic_extension,
     hex_edges,
@@ -148,8 +149,9 @@ def test_part_surface_features_of_l_block():
     # 18 polycube edges: the L profile (perimeter 10) twice, plus its 6 corners along y
     length = np.linalg.norm(V[surf.seg[:, 0]] - V[surf.seg[:, 1]], axis=1).sum()
     assert length == pytest.approx(26.0)
-    # the 12 corners are the feature vertices
+    # the 12 corners are the feature vertices, and each is where three sharp edges meet
     assert len(surf.feature_vertices) == 12
+    assert np.array_equal(np.sort(surf.branch_vertices), np.sort(surf.feature_vertices))
     P, d, _ = surf.closest_on_curves(np.array([[1.5, -0.2, 0.1]]))
     assert np.allclose(P, [[1.5, 0.0, 0.0]]) and d[0] == pytest.approx(np.hypot(0.2, 0.1))
 
@@ -402,3 +404,36 @@ def test_a_far_from_valid_result_is_not_recomputed_without_the_coverage_fit(monk
     out = pb.pull_back(m, lambda p: p, V, F)
     assert len(calls) == calls_expected and calls[0] == PullbackConfig().coverage_iterations
     assert ("coverage_retry" in out.meta) == (calls_expected == 2)
+
+
+def test_a_cut_corner_gets_a_node_back_under_the_quality_guard():
+    """A box mesh whose corner node sits inside the part's corner: the snap puts it back on the
+    corner (the part's feature vertex) without lowering any hex; a mesh on its corners is left."""
+    m = structured_box(4)
+    pc = _polycube(np.ones((1, 1, 1), bool), [0, 4], [0, 4], [0, 4])
+    V, F = polycube_surface(pc.xs, pc.ys, pc.zs, pc.occupancy, h=0.5)
+    V = V / np.linalg.norm([4, 4, 4])  # the pull-back's frame: diagonal 1
+    X = m.points / np.linalg.norm([4, 4, 4])
+    surf = PartSurface(V, F)
+    nodes = np.flatnonzero(m.boundary)
+    hloc = np.full(len(nodes), 0.25 / np.sqrt(3))  # one cell
+    untouched, info = guarded_corner_snap(surf, X, m.hexes, nodes, hloc, sj_bar=0.3)
+    assert info["corner_snaps"] == 0 and np.array_equal(untouched, X)
+    corner = int(np.argmin(np.linalg.norm(X, axis=1)))  # the node at (0, 0, 0)
+    cut = X.copy()
+    cut[corner] += 0.35 * 0.25 / np.sqrt(3)  # inward along the diagonal: the part's corner is cut
+    before = scaled_jacobian(cut, m.hexes)
+    out, info = guarded_corner_snap(surf, cut, m.hexes, nodes, hloc, sj_bar=0.3)
+    assert info["corner_snaps"] == 1
+    assert np.allclose(out[corner], 0.0)
+    assert (scaled_jacobian(out, m.hexes) >= np.minimum(before, 0.3) - 1e-9).all()
+    # a part corner 1.9 cells beyond the mesh's along x: all the way would shear the corner hex to
+    # SJ 0.22 (< the 0.3 bar), so the node goes only as far as the bar allows (0.75 of the way)
+    cell = 0.25 / np.sqrt(3)
+    shifted = PartSurface(V - [1.9 * cell, 0, 0], F)
+    corners = shifted.V[shifted.branch_vertices]
+    assert len(corners) == 8
+    target = corners[np.argmin(np.linalg.norm(corners - X[corner], axis=1))]
+    out, info = guarded_corner_snap(shifted, X, m.hexes, nodes, hloc, sj_bar=0.3)
+    assert np.allclose(out[corner], X[corner] + 0.75 * (target - X[corner]))
+    assert scaled_jacobian(out, m.hexes).min() >= 0.3 - 1e-9
