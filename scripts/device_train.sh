@@ -8,8 +8,9 @@
 #
 # Run `start` under setsid from the first `run` call (`setsid nohup bash scripts/device_train.sh start 16 >
 # /root/pc/main.out 2>&1 &`), then poll and `export $OUT` in each call: the machine goes back 30 s after a
-# call ends, so issue the next call at once. NOGEN=1 restarts only the training. Session 7: 14 cores make
-# 16384 pairs in ~270 s; the training is CPU-bound (batch building; GPU ~1 % busy) at ~5 steps/s of 128.
+# call ends, so issue the next call at once. NOGEN=1 restarts only the training. Session 7: 14 cores made
+# 2 x 16384 uniform-sampled pairs in ~270 s (Poisson-disk ones will take longer: the numpy elimination);
+# the training is CPU-bound (batch building; GPU ~1 % busy) at ~5 steps/s of 128.
 #
 # The data: seed 8 (plain) and seed 9 (--cad-features), 16384 pairs each, made shard by shard and linked into
 # $D/mix, which the training re-reads every 200 steps (each shard's arrays are loaded once). The recipe: the
@@ -28,9 +29,9 @@ case "${1:?start|export|wait}" in
 start)
   MINUTES=${2:?minutes}
   nproc; nvidia-smi -L
-  # the device image has no open3d: uniform surface samples instead of Poisson-disk ones there (held-out
-  # pairs, made here, stay Poisson-disk: session 7 measured the result on them)
-  SYNTH="$PY -m polycubenet.synth --n-cond 2048 --n-target 2048 --no-progress --sampler uniform"
+  # the device image has no open3d: Poisson-disk sampling falls back to polycubenet.sampling.eliminate_samples
+  # (the same points, ~5x slower; session 7 ran before it existed, with --sampler uniform)
+  SYNTH="$PY -m polycubenet.synth --n-cond 2048 --n-target 2048 --no-progress ${SAMPLER:+--sampler $SAMPLER}"
   [ -n "${NOGEN:-}" ] || setsid nohup $SYNTH --out "$D/g8" --count 16384 --seed 8 --workers 7 > "$D/g8.out" 2>&1 &
   [ -n "${NOGEN:-}" ] || setsid nohup $SYNTH --out "$D/g9" --count 16384 --seed 9 --workers 7 --cad-features > "$D/g9.out" 2>&1 &
   [ -n "${NOGEN:-}" ] || setsid nohup bash -c "while true; do for s in 8 9; do for f in $D/g\$s/shard-*.npz; do [ -e \$f ] || continue;

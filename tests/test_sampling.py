@@ -69,3 +69,23 @@ def test_rejects_bad_counts(torus):
         poisson_disk(V, F, 0)
     with pytest.raises(ValueError, match="zero area"):
         uniform_sample(np.zeros((3, 3)), np.array([[0, 1, 2]]), 10, np.random.default_rng(0))
+
+
+def test_without_open3d_the_numpy_elimination_gives_the_same_points(torus, monkeypatch):
+    import polycubenet.sampling as sampling
+
+    V, F = torus
+    with_o3d = poisson_disk(V, F, 1500, seed=4)
+
+    def missing():
+        raise ImportError("no open3d here")
+
+    monkeypatch.setattr(sampling, "_open3d", missing)
+    s = poisson_disk(V, F, 1500, seed=4)
+    assert s.meta["eliminator"] == "numpy" and with_o3d.meta["eliminator"] == "open3d"
+    assert len(s.points) == 1500
+    assert np.allclose(interpolate(V, F, s.face_ids, s.barycentrics), s.points)
+    # Yuksel's elimination with open3d's parameters: the very points open3d keeps
+    key = lambda p: np.lexsort(p.T)  # noqa: E731
+    assert np.allclose(s.points[key(s.points)], with_o3d.points[key(with_o3d.points)])
+    assert min_spacing(s.points) > 5 * min_spacing(uniform_sample(V, F, 1500, np.random.default_rng(4)).points)
