@@ -1031,6 +1031,12 @@ def fit_coverage(
     return X, {"coverage_s2h": hist_s, "coverage_h2s": hist_h}
 
 
+def _hex_sj(hexes: np.ndarray, Y: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Scaled Jacobian of hexes ``rows`` at node positions ``Y``, ``-inf`` for a degenerate one."""
+    sj, dg = scaled_jacobian_and_degenerate(Y, hexes[rows])
+    return np.where(dg, -np.inf, sj)
+
+
 def guarded_coverage(
     cov: _Coverage,
     X: np.ndarray,
@@ -1072,11 +1078,7 @@ def guarded_coverage(
     P, H = len(X), len(hexes)
     incident, node_min = _hex_incidence(hexes, P)
 
-    def measure(Y, rows):
-        sj_r, dg_r = scaled_jacobian_and_degenerate(Y, hexes[rows])
-        return np.where(dg_r, -np.inf, sj_r)
-
-    sj = measure(X, np.arange(H))
+    sj = _hex_sj(hexes, X, np.arange(H))
     movable_b = con.mode != _FIXED
     if follow is not None:
         follow = np.concatenate([follow, np.full(P - len(follow), -1, dtype=np.int64)])
@@ -1103,7 +1105,7 @@ def guarded_coverage(
         rows = np.flatnonzero(np.asarray(incident @ moved))
         n_undone = 0
         for _ in range(100):
-            sj_new[rows] = measure(Xn, rows)
+            sj_new[rows] = _hex_sj(hexes, Xn, rows)
             bad = moved & (node_min(sj_new) < limit)
             if not bad.any():
                 break
@@ -1177,10 +1179,6 @@ def guarded_corner_snap(
         pts = np.concatenate([q.mean(axis=1), 0.5 * (q + np.roll(q, -1, axis=1)).reshape(-1, 3)])
         return float(surf.closest(pts)[1].max())
 
-    def hex_sj(Y, rows):
-        sj, dg = scaled_jacobian_and_degenerate(Y, hexes[rows])
-        return np.where(dg, -np.inf, sj)
-
     used: set = set()
     for ci in todo[np.argsort(d[todo])]:
         n = int(nodes[j[ci]])
@@ -1190,13 +1188,13 @@ def guarded_corner_snap(
         group = [n] + ([int(follow[n])] if follow is not None and follow[n] >= 0 else [])
         rows = np.unique(np.concatenate([inc[:, m].indices for m in group]))
         qrows = node_quads[n].indices
-        before = hex_sj(X, rows)
+        before = _hex_sj(hexes, X, rows)
         gap_bar = max(quad_gap(X, qrows), 0.5 * tol.HAUSDORFF_REL_MAX)
         for frac in fractions:
             v = frac * (C[ci] - X[n])
             Y = X.copy()
             Y[group] += v
-            if (hex_sj(Y, rows) >= np.minimum(before, sj_bar) - 1e-9).all() and quad_gap(Y, qrows) <= gap_bar:
+            if (_hex_sj(hexes, Y, rows) >= np.minimum(before, sj_bar) - 1e-9).all() and quad_gap(Y, qrows) <= gap_bar:
                 X = Y
                 info["corner_snaps"] += 1
                 break
@@ -1538,11 +1536,7 @@ def guarded_smooth(
     def node_sum(v):
         return np.bincount(flat, weights=np.repeat(v, 8), minlength=P)
 
-    def measure(Y, rows):
-        sj_r, dg_r = scaled_jacobian_and_degenerate(Y, hexes[rows])
-        return np.where(dg_r, -np.inf, sj_r)
-
-    sj = measure(X, np.arange(H))
+    sj = _hex_sj(hexes, X, np.arange(H))
     moved_counts = []
     for _ in range(sweeps):
         before, before_sum = node_min(sj), node_sum(sj)
@@ -1553,7 +1547,7 @@ def guarded_smooth(
         sj_new = sj.copy()
         rows = np.flatnonzero(np.asarray(incident @ active))
         for _ in range(100):
-            sj_new[rows] = measure(Xn, rows)  # only hexes around nodes that moved
+            sj_new[rows] = _hex_sj(hexes, Xn, rows)  # only hexes around nodes that moved
             bad = active & ((node_min(sj_new) < before) | (node_sum(sj_new) < before_sum - 1e-12))
             if not bad.any():
                 break
