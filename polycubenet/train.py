@@ -194,8 +194,11 @@ def lr_at(step: int, cfg: TrainConfig) -> float:
 
 @torch.no_grad()
 def ema_update(ema: torch.nn.Module, model: torch.nn.Module, decay: float) -> None:
-    for pe, pm in zip(ema.parameters(), model.parameters()):
-        pe.mul_(decay).add_(pm.detach(), alpha=1 - decay)
+    """``ema = decay * ema + (1 - decay) * model``, in two fused list operations (a GPU step of
+    this small model is bound by kernel launches, one pair per tensor otherwise)."""
+    pe = list(ema.parameters())
+    torch._foreach_mul_(pe, decay)
+    torch._foreach_add_(pe, [p.detach() for p in model.parameters()], alpha=1 - decay)
 
 
 def _widen_anchor_embed(src: dict, own: dict, mcfg: ModelConfig) -> dict:

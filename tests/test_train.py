@@ -267,3 +267,14 @@ def test_boolean_flags_parse_false_as_false(tmp_path, shards):
                  "--max-minutes", "5", "--no-progress"]) == 0
     s = torch.load(tmp_path / "r" / "last.pt", map_location="cpu", weights_only=False)
     assert s["train_config"]["fit_steps"] is False and s["step"] == 4
+
+
+def test_ema_update_is_the_moving_average():
+    from polycubenet.train import ema_update
+
+    torch.manual_seed(0)
+    model, ema = torch.nn.Linear(3, 2), torch.nn.Linear(3, 2)
+    before = [p.detach().clone() for p in ema.parameters()]
+    ema_update(ema, model, 0.9)
+    for e, b, m in zip(ema.parameters(), before, model.parameters()):
+        assert torch.allclose(e, 0.9 * b + 0.1 * m)
