@@ -6,6 +6,8 @@
 #   scripts/device_train.sh export DIR      # the run's EMA weights (no optimizer: < 16 MiB) and logs into DIR
 #   scripts/device_train.sh wait            # until the training has written its last checkpoint
 #
+# First (seconds): `python3 benchmarks/bench_train_step.py --data $D/mix --device cuda:0 --batches 128 512 2048`
+# to see whether a step is launch-bound and which BATCH buys the most pairs per second.
 # Run `start` under setsid from the first `run` call (`setsid nohup bash scripts/device_train.sh start 16 >
 # /root/pc/main.out 2>&1 &`), then poll and `export $OUT` in each call: the machine goes back 30 s after a
 # call ends, so issue the next call at once. NOGEN=1 restarts only the training. Session 7: 14 cores made
