@@ -439,6 +439,20 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
     return {"step": step, **metrics}
 
 
+def recipe_flags(checkpoint: str | Path) -> list[str]:
+    """The ``train`` flags of the recipe a checkpoint was trained with (preset, diffusion, points,
+    batch, anchor gain, t bias), so a run continues it (``scripts/train_session.sh``,
+    ``scripts/device_train.sh``; a later ``--batch`` on the command line wins)."""
+    s = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    d, tc = s.get("diffusion") or {}, s.get("train_config") or {}
+    return ["--preset", tc.get("preset", "cpu"),
+            "--prediction", d.get("prediction", "eps"), "--schedule", d.get("schedule", "cosine"),
+            "--pairing", d.get("pairing", "random"), "--min-snr", str(d.get("min_snr") or 0),
+            "--points", str(tc.get("points", 512)), "--batch", str(tc.get("batch", 12)),
+            "--anchor-gain", str((s.get("model_config") or {}).get("anchor_gain", 0.0)),
+            "--t-bias", str(tc.get("t_bias", 1.0))]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m polycubenet.train", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)

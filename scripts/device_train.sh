@@ -40,17 +40,7 @@ start)
       b=\$(basename \$f); [ -e $D/mix/shard-\$s\${b#shard-} ] || ln -s \$f $D/mix/shard-\$s\${b#shard-}; done; done;
       sleep 5; done" > /dev/null 2>&1 &
   while [ "$(ls "$D/mix" | wc -l)" -lt 12 ]; do sleep 5; done
-  RECIPE=$("$PY" - "$CKPT" <<'PYEOF'
-import sys, torch
-s = torch.load(sys.argv[1], map_location="cpu", weights_only=False)
-d, tc = s.get("diffusion") or {}, s.get("train_config") or {}
-print(" ".join(["--preset", tc.get("preset", "cpu"), "--prediction", d.get("prediction", "eps"),
-                "--schedule", d.get("schedule", "cosine"), "--pairing", d.get("pairing", "random"),
-                "--min-snr", str(d.get("min_snr") or 0), "--points", str(tc.get("points", 512)),
-                "--anchor-gain", str((s.get("model_config") or {}).get("anchor_gain", 0.0)),
-                "--t-bias", str(tc.get("t_bias", 1.0))]))
-PYEOF
-)
+  RECIPE=$("$PY" -c "import sys; from polycubenet.train import recipe_flags; print(' '.join(recipe_flags(sys.argv[1])))" "$CKPT")
   echo "recipe: $RECIPE --batch $BATCH --lr $LR"
   $PY -m polycubenet.train --data "$D/mix" --out "$D/run" --init "$CKPT" $RECIPE --batch "$BATCH" \
       --lr "$LR" --min-lr-ratio 0.033 --warmup 300 --steps 100000 --fit-steps True --device cuda:0 --seed 8 \

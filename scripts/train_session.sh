@@ -29,19 +29,7 @@ SEED=${SEED:-0}  # the pair draw of the run: another value for another session's
 CKPT=polycubenet/checkpoints/polycubenet-cpu.pt
 mkdir -p "$RUN"
 # the recipe the shipped checkpoint was trained with, as train flags
-RECIPE=$("$PY" - "$CKPT" <<'EOF'
-import sys, torch
-s = torch.load(sys.argv[1], map_location="cpu", weights_only=False)
-d, tc = s.get("diffusion") or {}, s.get("train_config") or {}
-flags = ["--preset", tc.get("preset", "cpu"),
-         "--prediction", d.get("prediction", "eps"), "--schedule", d.get("schedule", "cosine"),
-         "--pairing", d.get("pairing", "random"), "--min-snr", str(d.get("min_snr") or 0),
-         "--points", str(tc.get("points", 512)), "--batch", str(tc.get("batch", 12)),
-         "--anchor-gain", str((s.get("model_config") or {}).get("anchor_gain", 0.0)),
-         "--t-bias", str(tc.get("t_bias", 1.0))]
-print(" ".join(flags))
-EOF
-)
+RECIPE=$("$PY" -c "import sys; from polycubenet.train import recipe_flags; print(' '.join(recipe_flags(sys.argv[1])))" "$CKPT")
 SYNTH="$PY -m polycubenet.synth --n-cond 2048 --n-target 2048 --no-progress"
 link() {  # link() SRC PREFIX: every finished shard of SRC into $DATA/mix as shard-PREFIX<n>.npz
   echo "for f in $DATA/$1/shard-*.npz; do [ -e \$f ] || continue; b=\$(basename \$f); \
