@@ -6,7 +6,8 @@
 # 1. makes the held-out shards (seed 2, 256 pairs) and the first training set (seed 1, 4096 pairs) under
 #    $DATA (default /work/data) if they are not there yet (resumable; ~13 min on 2 cores);
 # 2. trains from the committed checkpoint (polycubenet/checkpoints/polycubenet-cpu.pt: its EMA weights,
-#    a fresh optimizer with a short warm-up) with the recipe recorded in it, into $RUN (default
+#    a fresh optimizer with a short warm-up; INIT=FILE starts from another file instead, e.g. an unpublished
+#    run's last.pt) with the recipe recorded in the committed one, into $RUN (default
 #    /work/run-session), stopping cleanly after MINUTES, on $DATA/mix: links to every training shard;
 # 3. meanwhile, one more process makes the further training sets (seed 4, 8192 pairs; seed 5, 8192 pairs
 #    with --cad-features: round bosses, slanted ends) and links each finished shard into $DATA/mix, where
@@ -25,8 +26,10 @@ LR=${LR:-3e-4}
 STEPS=${STEPS:-1000000}
 MIN_LR_RATIO=${MIN_LR_RATIO:-1.0}
 BATCH=${BATCH:-12}  # pairs per step on a CPU (a checkpoint trained on a GPU records its larger batch)
+FIT=${FIT:-false}  # true: re-fit STEPS to the measured pace so the cosine ends with MINUTES
 SEED=${SEED:-0}  # the pair draw of the run: another value for another session's run
 CKPT=polycubenet/checkpoints/polycubenet-cpu.pt
+INIT=${INIT:-$CKPT}  # the weights a new run starts from (default: the committed checkpoint)
 mkdir -p "$RUN"
 # the recipe the shipped checkpoint was trained with, as train flags
 RECIPE=$("$PY" -c "import sys; from polycubenet.train import recipe_flags; print(' '.join(recipe_flags(sys.argv[1])))" "$CKPT")
@@ -39,8 +42,8 @@ mkdir -p "$DATA/mix"
 setsid nohup bash -c "
   $SYNTH --out $DATA/heldout --count 256 --seed 2 --workers 2 &&
   $SYNTH --out $DATA/train --count 4096 --seed 1 --workers 2 && $(link train 0) &&
-  $PY -m polycubenet.train --data $DATA/mix --eval-data $DATA/heldout --out $RUN --init $CKPT \
-      $RECIPE --batch $BATCH --steps $STEPS --lr $LR --min-lr-ratio $MIN_LR_RATIO --warmup 50 --threads $THREADS \
+  $PY -m polycubenet.train --data $DATA/mix --eval-data $DATA/heldout --out $RUN --init $INIT \
+      $RECIPE --batch $BATCH --steps $STEPS --lr $LR --min-lr-ratio $MIN_LR_RATIO --fit-steps $FIT --warmup 50 --threads $THREADS \
       --seed $SEED --reload-every 200 --ckpt-every 100 --log-every 50 --no-progress --max-minutes $MINUTES
 " > "$RUN/train.out" 2>&1 &
 # the further sets, one process, each shard linked as soon as it is written (the training re-reads the folder)
