@@ -728,13 +728,29 @@ class ClassicalCloud(PolycubeCloud):
 
     Extra attributes (saved with the cloud): ``polycube_vertices (nv, 3)`` (flattened
     surface), ``surface_vertices (nv, 3)`` (the same vertices on the part, canonical
-    frame), ``surface_faces (nf, 3)`` and ``face_labels (nf,)``.
+    frame), ``surface_faces (nf, 3)`` and ``face_labels (nf,)``; a source that knows its
+    solid exactly (the voxel polycube) also gives ``grid_x, grid_y, grid_z`` (plane
+    coordinates) and ``occupancy``: :meth:`exact_polycube`.
     """
 
     polycube_vertices: np.ndarray | None = None
     surface_vertices: np.ndarray | None = None
     surface_faces: np.ndarray | None = None
     face_labels: np.ndarray | None = None
+    grid_x: np.ndarray | None = None
+    grid_y: np.ndarray | None = None
+    grid_z: np.ndarray | None = None
+    occupancy: np.ndarray | None = None
+
+    def exact_polycube(self):
+        """The solid the cloud was sampled from (:class:`~polycubenet.data.Polycube`), or None
+        when the source does not give it (the flattening: its solid is recovered by extraction)."""
+        from .data import Polycube
+
+        if any(a is None for a in (self.grid_x, self.grid_y, self.grid_z, self.occupancy)):
+            return None
+        return Polycube(np.asarray(self.grid_x, float), np.asarray(self.grid_y, float), np.asarray(self.grid_z, float),
+                        np.asarray(self.occupancy, bool), meta={})
 
     def correspondence(self) -> SurfaceMap:
         """The exact polycube -> part map (``map_points`` like registration's Correspondence)."""

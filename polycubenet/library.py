@@ -43,6 +43,7 @@ from .atomic import write_json, write_text
 from .data import HexMesh, Part, Polycube, PolycubeCloud, SurfaceSample
 from .errors import PolycubeError
 from .pipeline import OracleSource, PartResult, PipelineConfig
+from .policy import refinement
 
 #: part files the library reads (``polycubenet.io.load_part``)
 CAD_SUFFIXES = (".step", ".stp", ".iges", ".igs")
@@ -59,7 +60,7 @@ SIDECAR_SUFFIX = ".polycube.npz"
 STAGE_VERSIONS = {
     "load_sample": "1",
     "polycube": "1",
-    "extract": "2",  # 2: carries the classical exact map
+    "extract": "3",  # 2: carries the classical exact map; 3: the voxel solid taken as built
     "register": "2",  # 2: the classical exact map replaces CPD
     "pullback": "2",  # 2: classical pullback as in pipeline.mesh_surface
     "export": "1",
@@ -299,7 +300,8 @@ def classical_available() -> bool:
 
 
 def make_source(kind: str, part_path: str | os.PathLike, transform):
-    """A per-part polycube source by name: ``oracle``, ``classical`` or ``voxel``.
+    """A per-part polycube source by name: ``oracle``, ``classical``, ``voxel`` or ``voxel+K``
+    (the voxel polycube ``K`` refinement steps finer, :func:`polycubenet.policy.source_names`).
 
     (``learned`` is not made here: the flow runs the model in batches across parts.)
     This is the one place the classical fallbacks plug in.
@@ -312,11 +314,12 @@ def make_source(kind: str, part_path: str | os.PathLike, transform):
         except ImportError as exc:
             raise PolycubeError(f"the classical polycube construction is not available ({exc})") from exc
         return ClassicalSource()
-    if kind == "voxel":
+    base, refine = refinement(kind)
+    if base == "voxel":
         from .voxel import VoxelSource
 
-        return VoxelSource()
-    raise ValueError(f"unknown per-part polycube source {kind!r}; expected 'oracle', 'classical' or 'voxel'")
+        return VoxelSource(refine=refine)
+    raise ValueError(f"unknown per-part polycube source {kind!r}; expected 'oracle', 'classical', 'voxel' or 'voxel+K'")
 
 
 def source_extra(kind: str, part_path: str | os.PathLike, checkpoint: str | os.PathLike | None = None, *,
@@ -341,11 +344,11 @@ def source_extra(kind: str, part_path: str | os.PathLike, checkpoint: str | os.P
         from .classical import VERSION, ClassicalConfig
 
         return {"classical": ClassicalConfig(), "version": VERSION}
-    if kind == "voxel":
+    if refinement(kind)[0] == "voxel":
         from .voxel import VERSION as VOXEL_VERSION
         from .voxel import VoxelConfig
 
-        return {"voxel": VoxelConfig(), "version": VOXEL_VERSION}
+        return {"voxel": VoxelConfig(), "version": VOXEL_VERSION, "refine": refinement(kind)[1]}
     return {}
 
 
@@ -402,19 +405,21 @@ def write_generated(generated: np.ndarray, dest: str | os.PathLike, meta: dict) 
 
 def cleanup_extract(cloud_path: str | os.PathLike, loaded: str | os.PathLike, dest: str | os.PathLike,
                     config: PipelineConfig) -> Path:
-    """Outlier filter, then structure extraction (validated against the part's genus).
+    """Outlier filter, then the explicit polycube (:func:`polycubenet.pipeline.cloud_polycube`:
+    the voxel solid as built, any other cloud's structure extracted; validated against the
+    part's genus).
 
     Writes the cleaned cloud and the polycube in one ``.npz``; raises PolycubeError when
     the polycube fails validation.
     """
+    from .classical import ClassicalCloud
     from .cleanup import remove_outliers
-    from .structure import extract
+    from .pipeline import cloud_polycube
 
-    cloud = PolycubeCloud.load(cloud_path)
+    cloud = ClassicalCloud.load(cloud_path)  # a plain cloud loads with the classical fields None
     _, _, _, meta = read_loaded(loaded)
     P, N, _ = remove_outliers(cloud.points, cloud.normals)
-    poly = extract(P, N, genus=meta["part"].get("genus"), config=config.extract, part=meta["name"])
-    poly.meta["provenance"] = cloud.meta.get("provenance")
+    poly = cloud_polycube(cloud, P, N, meta["part"].get("genus"), config, meta["name"])
     exact = _exact_map_arrays(cloud_path)
     return _save_arrays(dest, {"polycube": poly.meta, "cloud": cloud.meta}, points=P, normals=N,
                         xs=poly.xs, ys=poly.ys, zs=poly.zs, occupancy=poly.occupancy, **exact)
@@ -466,8 +471,11 @@ def partition_pullback(extracted: str | os.PathLike, corr: str | os.PathLike, lo
     from .pullback import pull_back
     from .registration import Correspondence
 
+    from .pipeline import own_diagonal
+
     _, _, poly, _ = read_extracted(extracted)
-    part, _, _, _ = read_loaded(loaded)
+    part, _, T, _ = read_loaded(loaded)
+    diagonal = own_diagonal(part.vertices, T)
     if config.target_size is not None:
         mesh_pc = partition(poly, target_size=config.target_size)
     else:
@@ -476,18 +484,20 @@ def partition_pullback(extracted: str | os.PathLike, corr: str | os.PathLike, lo
     if all(k in arrays for k in _EXACT_MAP):  # classical: the same pullback as pipeline.mesh_surface
         from .pipeline import _pull_back_classical
 
-        return _pull_back_classical(mesh_pc, _surface_map(arrays), part.vertices, part.faces, config).save(dest)
+        return _pull_back_classical(mesh_pc, _surface_map(arrays), part.vertices, part.faces, config,
+                                    diagonal).save(dest)
     c = Correspondence.load(corr)
-    return pull_back(mesh_pc, c.map_points, part.vertices, part.faces, config.pullback).save(dest)
+    return pull_back(mesh_pc, c.map_points, part.vertices, part.faces, config.pullback, diagonal).save(dest)
 
 
 def pullback_quality(path: str | os.PathLike) -> dict:
-    """``valid``, ``sj_min`` and ``deviation`` of a :func:`partition_pullback` file (what decides
+    """``valid``, ``sj_min``, ``deviation`` and ``hausdorff`` of a :func:`partition_pullback` file (what decides
     whether the flow tries the next polycube source), read from its metadata."""
     m = HexMesh.load(path).meta
-    sj, dev = m.get("sj_min"), m.get("deviation")
-    return {"valid": bool(m.get("valid")), "sj_min": None if sj is None else float(sj),
-            "deviation": None if dev is None else float(dev)}
+    out = {"valid": bool(m.get("valid"))}
+    for k in ("sj_min", "deviation", "hausdorff"):
+        out[k] = None if m.get(k) is None else float(m[k])
+    return out
 
 
 def report_export(hexc: str | os.PathLike, extracted: str | os.PathLike, loaded: str | os.PathLike,

@@ -60,7 +60,7 @@ from .frame import Transform, canonicalize
 from .hexmesh import partition
 from .polycube import polycube_surface
 from .policy import MODES as POLYCUBE_MODES
-from .policy import Attempt, error_reason, invalid_mesh_reason, mesh_rank, run_chain, source_names  # noqa: F401
+from .policy import Attempt, error_reason, invalid_mesh_reason, mesh_rank, refinement, run_chain, source_label, source_names  # noqa: F401
 from .pullback import PullbackConfig, pull_back, worth_retry
 from .quality import QualityReport, quality_report
 from .registration import align
@@ -86,9 +86,9 @@ class PipelineConfig:
     polycube : ``"learned"``, ``"classical"``, ``"voxel"`` or ``"auto"`` (see the module
         docstring); ``"learned"`` by default so an injected source is used exactly as given
     classical, voxel : the settings of the classical and voxel polycubes
-    learned_min_sj : a valid mesh through the learned polycube with a lower minimum scaled
-        Jacobian does not end the chain: the classical chain is tried and the better mesh kept
-        (:mod:`polycubenet.policy`; None: any valid learned mesh is kept)
+    min_sj : a valid mesh with a lower minimum scaled Jacobian does not end the chain: the
+        next polycube source is tried and the better mesh kept (:mod:`polycubenet.policy`;
+        None: any valid mesh ends it)
     """
 
     n_sample: int = 4096
@@ -103,7 +103,7 @@ class PipelineConfig:
     polycube: str = "learned"
     classical: ClassicalConfig = ClassicalConfig()
     voxel: VoxelConfig = VoxelConfig()
-    learned_min_sj: float | None = 0.2
+    min_sj: float | None = 0.2
 
 
 #: the values of ``PipelineConfig.polycube`` (and of the command-line ``--polycube``): ``policy.MODES``
@@ -115,15 +115,22 @@ def source_chain(source, config: PipelineConfig) -> list[tuple[str, Callable]]:
 
     ``learned``: the injected source alone (the classical chain when it is None);
     ``classical``: the surface-flattening construction, then the voxel polycube;
-    ``voxel``: the voxel polycube alone; ``auto``: the injected source, then the classical chain.
+    ``voxel``: the voxel polycube alone; ``auto``: the injected source, then the classical chain;
+    the voxel polycube is followed by its refinements (``voxel+1``, ...).
     """
     from .voxel import VoxelSource
 
     if config.polycube not in POLYCUBE_MODES:
         raise ValueError(f"polycube must be one of {POLYCUBE_MODES}; got {config.polycube!r}")
     mode = "classical" if source is None and config.polycube in ("learned", "auto") else config.polycube
-    objects = {"learned": source, "classical": ClassicalSource(config.classical), "voxel": VoxelSource(config.voxel)}
-    return [(name, objects[name]) for name in source_names(mode)]
+
+    def make(name: str):
+        base, k = refinement(name)
+        if base == "voxel":
+            return VoxelSource(config.voxel, refine=k)
+        return {"learned": source, "classical": ClassicalSource(config.classical)}[name]
+
+    return [(name, make(name)) for name in source_names(mode)]
 
 
 class PolycubeSource(Protocol):
@@ -291,13 +298,13 @@ def mesh_surface(
                     mesh_pc = partition(poly, target_hexes=config.target_hexes)
             with clock("pullback"):
                 if hasattr(cloud, "correspondence"):
-                    mesh_c = _pull_back_classical(mesh_pc, corr, Vc, F, config)
+                    mesh_c = _pull_back_classical(mesh_pc, corr, Vc, F, config, own_diagonal(Vc, T))
                 else:
-                    mesh_c = pull_back(mesh_pc, corr.map_points, Vc, F, config.pullback)
+                    mesh_c = pull_back(mesh_pc, corr.map_points, Vc, F, config.pullback, own_diagonal(Vc, T))
             return Attempt(label, dict(mesh_c.meta), payload=(cloud, poly, mesh_c), seconds=tracker.seconds,
-                           label=cloud.meta.get("provenance") or label)
+                           label=source_label(label))
 
-        outcome = run_chain(list(chain), attempt, learned_min_sj=config.learned_min_sj)
+        outcome = run_chain(list(chain), attempt, min_sj=config.min_sj)
         clock.timings, clock.tracker = timings, None
         if outcome.chosen is None:
             exc = outcome.error
@@ -339,13 +346,43 @@ def _polycube_stages(source, sample, Vc, F, genus, config, name, clock, res):
     with clock("cleanup"):
         P, N, _ = remove_outliers(cloud.points, cloud.normals)
     with clock("extract"):
-        poly = extract(P, N, genus=genus, config=config.extract, part=name)
-        poly.meta["provenance"] = cloud.meta.get("provenance")
+        poly = cloud_polycube(cloud, P, N, genus, config, name)
     res.polycube = poly
     return cloud, P, N, poly
 
 
-def _pull_back_classical(mesh_pc, corr, Vc, F, config: PipelineConfig) -> HexMesh:
+def cloud_polycube(cloud: PolycubeCloud, P: np.ndarray, N: np.ndarray, genus: int | None, config: PipelineConfig,
+                   name: str | None = None) -> Polycube:
+    """The explicit polycube of a source's cloud (both drivers call this): the solid the source
+    built it from when the cloud carries it (the voxel polycube, ``ClassicalCloud.exact_polycube``),
+    checked to be a valid polycube of the part's genus; otherwise the structure extraction of the
+    filtered cloud ``(P, N)``.  A generated (learned) cloud is always extracted.  Raises
+    :class:`~polycubenet.errors.PolycubeError`."""
+    from .polycube import check_occupancy, compress, solid_genus
+
+    exact = cloud.exact_polycube() if hasattr(cloud, "exact_polycube") else None
+    if exact is None or cloud.meta.get("provenance") == "learned":
+        poly = extract(P, N, genus=genus, config=config.extract, part=name)
+    else:
+        grid, occ = compress([exact.xs, exact.ys, exact.zs], exact.occupancy)
+        reason = check_occupancy(occ)
+        if reason is not None:
+            raise PolycubeError(f"the {cloud.meta.get('provenance')} solid is not a valid polycube: {reason}", name)
+        g = int(solid_genus(occ))
+        if genus is not None and g != genus:
+            raise PolycubeError(f"polycube genus {g} differs from the part's genus {genus}", name)
+        poly = Polycube(grid[0], grid[1], grid[2], occ, meta={"genus": g, "grid_shape": list(occ.shape), "exact": True})
+    poly.meta["provenance"] = cloud.meta.get("provenance")
+    return poly
+
+
+def own_diagonal(Vc: np.ndarray, T: Transform) -> float:
+    """The bounding-box diagonal of the part in its own coordinates, in canonical units (what its
+    quality report's Hausdorff distance is relative to; the canonical box is the rotated part's)."""
+    return float(np.linalg.norm(np.ptp(np.asarray(Vc, float) @ np.asarray(T.rotation, float), axis=0)))
+
+
+def _pull_back_classical(mesh_pc, corr, Vc, F, config: PipelineConfig, diagonal: float | None = None) -> HexMesh:
     """Pullback with the classical (exact on the surface) map: the interior mode of
     ``config.classical.interior`` first; when that mesh is not valid, the other mode too,
     keeping the mesh with the higher minimum scaled Jacobian (``meta["interior"]`` says which); not when the
@@ -353,7 +390,7 @@ def _pull_back_classical(mesh_pc, corr, Vc, F, config: PipelineConfig) -> HexMes
     modes = [config.classical.interior] + [m for m in ("harmonic", "correction") if m != config.classical.interior]
     best = None
     for mode in modes:
-        mesh = pull_back(mesh_pc, corr.map_points, Vc, F, dataclasses.replace(config.pullback, interior=mode))
+        mesh = pull_back(mesh_pc, corr.map_points, Vc, F, dataclasses.replace(config.pullback, interior=mode), diagonal)
         mesh.meta["interior"] = mode
         if best is None or (mesh.meta.get("sj_min") or -np.inf) > (best.meta.get("sj_min") or -np.inf):
             best = mesh

@@ -143,7 +143,7 @@ def _chain(state, name, path, loaded, sources, keys, paths, config, formats, out
     """The body of :func:`mesh_chain` (``state["stage"]`` follows the stage reached): each source's
     stages as tasks, the choice between sources by :func:`polycubenet.policy.run_chain`."""
     from polycubenet.errors import PolycubeError
-    from polycubenet.policy import Attempt, run_chain
+    from polycubenet.policy import Attempt, run_chain, source_label
 
     from .common import FINAL_ERRORS
 
@@ -181,7 +181,7 @@ def _chain(state, name, path, loaded, sources, keys, paths, config, formats, out
         run("pullback", partition_pullback, src, tracker, extracted=att["extract"]["path"],
             corr=att["register"]["path"], loaded=loaded, dest=p["pullback"], config=config)
         return Attempt(src, library.pullback_quality(att["pullback"]["path"]), payload=att,
-                       seconds=dict(tracker.seconds))
+                       seconds=dict(tracker.seconds), label=source_label(src))
 
     def failed(stage: str, exc: BaseException, source: str, reasons) -> dict:
         return {"status": "failed", "stage": stage, "error": f"{type(exc).__name__}: {exc}", "source": source,
@@ -190,7 +190,7 @@ def _chain(state, name, path, loaded, sources, keys, paths, config, formats, out
 
     rejected: dict = {}
     try:
-        outcome = run_chain(list(sources), attempt, learned_min_sj=config.learned_min_sj)
+        outcome = run_chain(list(sources), attempt, min_sj=config.min_sj)
     except FINAL_ERRORS as exc:  # a bad part: final whatever the source
         reason = getattr(exc, "fallback_reason", None)
         return failed(exc.stage, exc, exc.source, [reason] if reason else [])

@@ -177,14 +177,21 @@ def test_voxel_source_by_name_and_its_key(monkeypatch, tmp_path):
     from polycubenet.policy import source_names
 
     assert isinstance(library.make_source("voxel", tmp_path / "p.stl", None), voxel.VoxelSource)
+    finer = library.make_source("voxel+2", tmp_path / "p.stl", None)
+    assert isinstance(finer, voxel.VoxelSource) and finer.refine == 2
+    with pytest.raises(ValueError, match="unknown per-part polycube source"):
+        library.make_source("voxel+x", tmp_path / "p.stl", None)
 
     before = _source_keys("voxel", tmp_path / "p.stl")
+    # a refinement has its own keys (its own cached stages)
+    assert _source_keys("voxel+1", tmp_path / "p.stl")["polycube"] != before["polycube"]
     monkeypatch.setattr(voxel, "VERSION", voxel.VERSION + "-next")
     assert _source_keys("voxel", tmp_path / "p.stl")["polycube"] != before["polycube"]
-    assert source_names("classical", False) == ["classical", "voxel"]
-    assert source_names("learned", True) == ["learned", "classical", "voxel"] == source_names("auto")
-    assert source_names("oracle", False) == ["oracle"] and source_names("voxel", True) == ["voxel"]
-    assert source_names("auto", classical=False) == ["learned", "voxel"]
+    vox = ["voxel", "voxel+1", "voxel+2", "voxel+3"]
+    assert source_names("classical", False) == ["classical"] + vox
+    assert source_names("learned", True) == ["learned", "classical"] + vox == source_names("auto")
+    assert source_names("oracle", False) == ["oracle"] and source_names("voxel", True) == vox
+    assert source_names("auto", classical=False) == ["learned"] + vox
 
 
 def test_polycube_to_frame_follows_a_signed_permutation():

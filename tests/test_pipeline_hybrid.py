@@ -103,12 +103,13 @@ def test_auto_falls_back_on_any_error_of_the_learned_attempt(l_block_file, monke
         else:
             real = pipeline.pull_back
 
-            def pull(mesh_pc, fn, V, F, cfg):  # only the learned attempt uses pull_back directly
+            def pull(mesh_pc, fn, V, F, cfg, diagonal=None):  # only the learned attempt uses pull_back directly
                 raise FloatingPointError("overflow in the harmonic solve")
 
             monkeypatch.setattr(pipeline, "pull_back", pull)
             monkeypatch.setattr(pipeline, "_pull_back_classical",
-                                lambda mesh_pc, corr, Vc, F, config: real(mesh_pc, corr.map_points, Vc, F, config.pullback))
+                                lambda mesh_pc, corr, Vc, F, config, diagonal=None: real(mesh_pc, corr.map_points, Vc, F,
+                                                                                         config.pullback, diagonal))
     res = mesh_part(l_block_file, src, PipelineConfig(polycube="auto", **SMALL))
     assert res.status == "meshed" and res.provenance == "classical" and res.report.to_dict()["valid"]
     stage = {"generate": "polycube", "register": "register", "pullback": "pullback"}[where]
@@ -187,8 +188,8 @@ def _invalid_first(monkeypatch, label: str, sj: float = -0.2):
 
     real = pipeline._pull_back_classical
 
-    def pull(mesh_pc, corr, Vc, F, config):
-        mesh = real(mesh_pc, corr, Vc, F, config)
+    def pull(mesh_pc, corr, Vc, F, config, diagonal=None):
+        mesh = real(mesh_pc, corr, Vc, F, config, diagonal)
         if corr.meta["method"].startswith(label):
             mesh.meta.update(valid=False, sj_min=sj)
         return mesh
@@ -214,8 +215,8 @@ def test_when_no_polycube_gives_a_valid_mesh_the_best_one_is_kept(l_block_file, 
 
     real = pipeline._pull_back_classical
 
-    def pull(mesh_pc, corr, Vc, F, config):  # both invalid; the classical one less so
-        mesh = real(mesh_pc, corr, Vc, F, config)
+    def pull(mesh_pc, corr, Vc, F, config, diagonal=None):  # both invalid; the classical one less so
+        mesh = real(mesh_pc, corr, Vc, F, config, diagonal)
         voxel = mesh_pc.meta.get("source") == "voxel"
         mesh.meta.update(valid=False, sj_min=-0.5 if voxel else -0.1)
         return mesh

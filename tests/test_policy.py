@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from polycubenet.errors import PartError, PolycubeError
-from polycubenet.policy import Attempt, run_chain, source_names
+from polycubenet.policy import Attempt, refinement, run_chain, source_label, source_names
 
 
 def _scripted(script: dict):
@@ -33,10 +33,16 @@ def _at(exc, stage):
     return exc
 
 
+VOXELS = ["voxel", "voxel+1", "voxel+2", "voxel+3"]
+
+
 def test_source_order():
-    assert source_names("auto") == ["learned", "classical", "voxel"]
-    assert source_names("classical") == ["classical", "voxel"] and source_names("voxel") == ["voxel"]
-    assert source_names("learned") == ["learned"] and source_names("oracle", fallback=True)[1:] == ["classical", "voxel"]
+    assert source_names("auto") == ["learned", "classical"] + VOXELS
+    assert source_names("classical") == ["classical"] + VOXELS and source_names("voxel") == VOXELS
+    assert source_names("learned") == ["learned"] and source_names("oracle", fallback=True)[1:] == ["classical"] + VOXELS
+    assert source_names("classical", classical=False) == VOXELS
+    assert refinement("voxel+2") == ("voxel", 2) and refinement("voxel") == ("voxel", 0)
+    assert refinement("classical") == ("classical", 0) and source_label("voxel+1") == "voxel (refinement 1)"
 
 
 def test_first_valid_mesh_is_kept_and_later_sources_are_not_tried():
@@ -87,23 +93,63 @@ def test_when_every_source_is_rejected_the_last_error_is_returned_with_the_earli
     assert out.reasons == ["learned polycube rejected at polycube: no usable cloud"]
 
 
-def test_a_valid_learned_mesh_under_the_bar_is_compared_with_the_classical_one():
-    """A learned mesh that is valid but under ``learned_min_sj`` does not end the chain: the classical
-    one is meshed too and the better kept -- either way round; the classical chain has no such bar."""
+def test_a_valid_mesh_under_the_bar_is_compared_with_the_next_one():
+    """A mesh that is valid but under ``min_sj`` does not end the chain: the next source is meshed too
+    and the better kept -- either way round."""
     chain = ["learned", "classical", "voxel"]
     attempt, calls = _scripted({"learned": {"valid": True, "sj_min": 0.05}, "classical": {"valid": True, "sj_min": 0.45}})
-    out = run_chain(chain, attempt, learned_min_sj=0.2)
+    out = run_chain(chain, attempt, min_sj=0.2)
     assert calls == ["learned", "classical"] and out.chosen.source == "classical"
     assert "valid but its minimum scaled Jacobian 0.050 is under 0.2" in out.fallback_reason
     assert out.rejected_seconds == {"polycube": 1.0, "pullback": 2.0}  # the learned attempt's
-    attempt, calls = _scripted({"learned": {"valid": True, "sj_min": 0.15}, "classical": {"valid": True, "sj_min": 0.1}})
-    out = run_chain(chain, attempt, learned_min_sj=0.2)
-    assert out.chosen.source == "learned" and "classical polycube's hex mesh is valid but worse" in out.fallback_reason
-    assert out.rejected_seconds == {"polycube": 1.0, "pullback": 2.0}  # now the classical attempt's
+    attempt, calls = _scripted({"learned": {"valid": True, "sj_min": 0.15}, "classical": {"valid": True, "sj_min": 0.1},
+                                "voxel": {"valid": True, "sj_min": 0.12}})
+    out = run_chain(chain, attempt, min_sj=0.2)
+    assert calls == chain and out.chosen.source == "learned"
+    assert "voxel polycube's hex mesh is valid but worse" in out.fallback_reason
+    assert out.rejected_seconds == {"polycube": 2.0, "pullback": 4.0}  # the classical and voxel attempts'
     attempt, calls = _scripted({"learned": {"valid": True, "sj_min": 0.25}, "classical": {"valid": True, "sj_min": 0.6}})
-    assert run_chain(chain, attempt, learned_min_sj=0.2).chosen.source == "learned" and calls == ["learned"]
+    assert run_chain(chain, attempt, min_sj=0.2).chosen.source == "learned" and calls == ["learned"]
+    # HexGen rockerarm: the flattening's mesh is valid at 0.187, the voxel polycube's at 0.302
+    attempt, calls = _scripted({"classical": {"valid": True, "sj_min": 0.187}, "voxel": {"valid": True, "sj_min": 0.302}})
+    assert run_chain(["classical", "voxel"], attempt, min_sj=0.2).chosen.source == "voxel"
     attempt, calls = _scripted({"classical": {"valid": True, "sj_min": 0.05}, "voxel": {"valid": True, "sj_min": 0.5}})
-    assert run_chain(["classical", "voxel"], attempt, learned_min_sj=0.2).chosen.source == "classical"
+    assert run_chain(["classical", "voxel"], attempt, min_sj=None).chosen.source == "classical" and calls == ["classical"]
+
+
+def test_finer_voxel_polycubes_are_tried_while_the_mesh_is_off_the_part_or_under_the_bar():
+    # HexGen fertility: 30 cells 1.26 % off, 34 cells under the bar, 38 cells good: 42 never made
+    attempt, calls = _scripted({"voxel": {"valid": True, "sj_min": 0.244, "deviation": 0.0126},
+                                "voxel+1": {"valid": True, "sj_min": 0.093, "deviation": 0.0146},
+                                "voxel+2": {"valid": True, "sj_min": 0.302, "deviation": 0.0084},
+                                "voxel+3": {"valid": True, "sj_min": 0.147, "deviation": 0.0058}})
+    out = run_chain(VOXELS, attempt, min_sj=0.2)
+    assert calls == VOXELS[:3] and out.chosen.source == "voxel+2"
+    assert "the voxel polycube's hex mesh is valid but 1.26 % of the diagonal off" in out.fallback_reason
+    assert "the voxel (refinement 1) polycube's hex mesh is valid but 1.46 % of the diagonal off" in out.fallback_reason
+    # none good: every refinement made, the best kept (valid and faithful first, then min SJ)
+    attempt, calls = _scripted({"voxel": {"valid": False, "sj_min": -0.5}, "voxel+1": {"valid": True, "sj_min": 0.15},
+                                "voxel+2": {"valid": True, "sj_min": 0.3, "deviation": 0.02},
+                                "voxel+3": {"valid": True, "sj_min": 0.1}})
+    out = run_chain(VOXELS, attempt, min_sj=0.2)
+    assert calls == VOXELS and out.chosen.source == "voxel+1"
+
+
+def test_a_refinement_is_not_tried_after_a_voxel_polycube_that_gave_no_mesh():
+    attempt, calls = _scripted({"classical": {"valid": True, "sj_min": 0.1},
+                                "voxel": PolycubeError("no voxel resolution in 8..44 gives a valid polycube")})
+    out = run_chain(["classical"] + VOXELS, attempt, min_sj=0.2)
+    assert calls == ["classical", "voxel"] and out.chosen.source == "classical"
+    assert "voxel polycube rejected at polycube: no voxel resolution" in out.fallback_reason
+    # a refinement that finds no finer resolution ends the refinements; the coarser mesh is kept
+    attempt, calls = _scripted({"voxel": {"valid": True, "sj_min": 0.25, "deviation": 0.02},
+                                "voxel+1": PolycubeError("no voxel resolution in 40..44")})
+    out = run_chain(VOXELS, attempt, min_sj=0.2)
+    assert calls == ["voxel", "voxel+1"] and out.chosen.source == "voxel"
+    # every source rejected: the last error that was raised is returned
+    attempt, calls = _scripted({"voxel": PolycubeError("no resolution")})
+    out = run_chain(VOXELS, attempt)
+    assert calls == ["voxel"] and out.chosen is None and out.error_source == "voxel" and out.reasons == []
 
 
 def test_a_valid_mesh_off_the_part_tries_the_next_source_and_the_faithful_one_wins():
@@ -112,7 +158,7 @@ def test_a_valid_mesh_off_the_part_tries_the_next_source_and_the_faithful_one_wi
                                 "voxel": {"valid": True, "sj_min": 0.15, "deviation": 0.006}})
     out = run_chain(["classical", "voxel"], attempt)
     assert calls == ["classical", "voxel"] and out.chosen.source == "voxel"
-    assert "5.0 % of the diagonal off the part" in out.fallback_reason
+    assert "5.00 % of the diagonal off the part" in out.fallback_reason
     assert out.rejected_seconds == {"polycube": 1.0, "pullback": 2.0}
 
 

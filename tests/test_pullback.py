@@ -360,7 +360,8 @@ def cylinder_runs():
         "default": {},
         "no_deviation_allowed": dict(release_max_deviation=0.0),
     }.items():
-        cfg = PipelineConfig(polycube="classical", target_hexes=1500, pullback=PullbackConfig(**over))
+        # min_sj=None: the flattening's mesh is kept whatever its quality (this is about the pull-back, not the policy)
+        cfg = PipelineConfig(polycube="classical", target_hexes=1500, pullback=PullbackConfig(**over), min_sj=None)
         runs[key] = mesh_surface(mesh.vertices, mesh.faces, None, cfg, part_meta={"genus": 0})
     return runs
 

@@ -13,8 +13,8 @@ from polycubenet.cleanup import remove_outliers
 from polycubenet.errors import PolycubeError
 from polycubenet.frame import canonicalize, face_normals_areas
 from polycubenet.hexmesh import enclosed_volume, partition
-from polycubenet.pipeline import PipelineConfig
-from polycubenet.polycube import check_occupancy, edge_contacts, nonmanifold_vertices, surface_genus
+from polycubenet.pipeline import PipelineConfig, cloud_polycube
+from polycubenet.polycube import check_occupancy, compress, edge_contacts, nonmanifold_vertices, same_structure, solid_genus, surface_genus
 from polycubenet.pullback import pull_back
 from polycubenet.structure import extract
 from polycubenet.voxel import (
@@ -27,7 +27,7 @@ from polycubenet.voxel import (
 )
 
 # a smaller cloud and a narrower resolution range keep the tests fast
-FAST = VoxelConfig(min_cells=8, max_cells=20, n_points=4096, extra_steps=0)
+FAST = VoxelConfig(min_cells=8, max_cells=20, extra_steps=0)
 
 
 def _canon(m):
@@ -76,8 +76,9 @@ def test_repair_removes_edge_and_vertex_contacts():
 
 def test_torus_voxel_polycube_has_the_parts_genus_and_images_on_the_part(torus_c):
     V, F = torus_c
-    Vp, Vs, Fs, labels, meta = voxel_polycube(V, F, FAST)
-    assert meta["genus"] == 1 == meta["part_genus"]
+    Vp, Vs, Fs, labels, poly, meta = voxel_polycube(V, F, FAST)
+    assert meta["genus"] == 1 == meta["part_genus"] == poly.meta["genus"]
+    assert solid_genus(poly.occupancy) == 1 and poly.occupancy.sum() == meta["cells"]
     assert surface_genus(Fs) == 1
     # outward, axis-aligned triangles with the classical label convention
     assert enclosed_volume(Vp, Fs) > 0
@@ -90,7 +91,7 @@ def test_torus_voxel_polycube_has_the_parts_genus_and_images_on_the_part(torus_c
     import json
 
     json.dumps(meta)  # JSON-able
-    assert VERSION == "2"
+    assert VERSION == "3"
 
 
 def test_too_coarse_a_range_is_rejected(torus_c):
@@ -101,7 +102,7 @@ def test_too_coarse_a_range_is_rejected(torus_c):
 
 def test_thin_bar_survives(dumbbell_c):
     V, F = dumbbell_c
-    Vp, Vs, Fs, labels, meta = voxel_polycube(V, F, FAST)
+    Vp, Vs, Fs, labels, _, meta = voxel_polycube(V, F, FAST)
     assert meta["genus"] == 0
     # the bar (much thinner than a cell at this resolution) is in the voxel solid: every point
     # of the part is near the voxel boundary, in particular the middle of the bar
@@ -115,13 +116,20 @@ def test_thin_bar_survives(dumbbell_c):
 def test_source_cloud_extracts_and_pulls_back_valid(torus_c):
     V, F = torus_c
     cfg = PipelineConfig(n_polycube=4096, target_hexes=1000)
-    cloud = VoxelSource(dataclasses.replace(FAST, n_points=cfg.n_polycube))(None, V, F, cfg)
+    cloud = VoxelSource(FAST)(None, V, F, cfg)
     assert isinstance(cloud, ClassicalCloud)
     assert cloud.meta["provenance"] == "voxel"
     assert len(cloud.points) == cfg.n_polycube
     P, N, _ = remove_outliers(cloud.points, cloud.normals)
-    poly = extract(P, N, genus=1, config=cfg.extract)
-    assert poly.meta["genus"] == 1
+    # the pipeline takes the voxel solid as built (not re-extracted from the cloud)
+    poly = cloud_polycube(cloud, P, N, 1, cfg)
+    assert poly.meta["genus"] == 1 and poly.meta["exact"] and poly.meta["provenance"] == "voxel"
+    exact = cloud.exact_polycube()
+    assert same_structure(poly, exact, atol=1e-12)
+    grid, _ = compress([exact.xs, exact.ys, exact.zs], exact.occupancy)
+    np.testing.assert_array_equal(poly.xs, grid[0])
+    # the extraction of the same cloud agrees at this coarse resolution (planes a cell apart)
+    assert same_structure(extract(P, N, genus=1, config=cfg.extract), exact, atol=0.25 * cloud.meta["cell_size"])
     corr = cloud.correspondence()
     # the map sends the voxel boundary vertices onto the part, points between them onto the
     # image triangles (chords of the part, so within a fraction of a cell of it)
@@ -170,3 +178,40 @@ def test_images_on_the_parts_sharp_edges_stay_on_them():
     assert off_edges(kept) < 1e-6 and rep["pinned"] >= on.sum()
     _, rep = surface_images(_scene(V, F), Vp, Fs, VoxelConfig(), surf)
     assert rep["flipped"] == 0
+
+
+def test_refinement_starts_finer_than_the_first_acceptable_resolution(torus_c):
+    V, F = torus_c
+    cfg = dataclasses.replace(FAST, max_cells=24)
+    *_, poly0, m0 = voxel_polycube(V, F, cfg)
+    *_, poly1, m1 = voxel_polycube(V, F, cfg, refine=1)
+    assert m1["first_resolution"] == m0["first_resolution"] and m1["refine"] == 1
+    assert m1["resolution"] >= m0["first_resolution"] + cfg.refine_cells > m0["resolution"]
+    assert poly1.occupancy.sum() > poly0.occupancy.sum() and m1["genus"] == 1
+    with pytest.raises(PolycubeError, match="refinement 9"):
+        voxel_polycube(V, F, cfg, refine=9)
+
+
+def test_an_exact_solid_is_taken_as_built_but_checked_and_never_for_a_generated_cloud(torus_c):
+    """``cloud_polycube`` takes the solid a voxel cloud carries whatever its points say, still checks
+    it against the part's genus, and extracts a learned cloud even if it carries a solid."""
+    occ = np.ones((3, 3, 2), bool)
+    occ[1, 1, :] = False  # a square ring: genus 1
+    g = [np.array([0.0, 0.1, 0.101, 0.3]), np.array([0.0, 0.2, 0.4, 0.5]), np.array([0.0, 0.05, 0.1])]
+    rng = np.random.default_rng(0)
+    P = rng.random((500, 3))  # points that are no polycube at all
+    N = rng.normal(size=(500, 3))
+    cloud = ClassicalCloud(P, N, meta={"provenance": "voxel"}, grid_x=g[0], grid_y=g[1], grid_z=g[2], occupancy=occ)
+    cfg = PipelineConfig()
+    poly = cloud_polycube(cloud, P, N, 1, cfg, "ring.stl")
+    assert poly.meta["exact"] and poly.occupancy.shape == (3, 3, 1)  # the minimal grid: the z slabs merged
+    np.testing.assert_allclose(poly.xs, g[0])  # planes 0.001 apart kept (no cloud could resolve them)
+    with pytest.raises(PolycubeError, match="genus 1 differs from the part's genus 2"):
+        cloud_polycube(cloud, P, N, 2, cfg, "ring.stl")
+    bad = ClassicalCloud(P, N, meta={"provenance": "voxel"}, grid_x=g[0], grid_y=g[1], grid_z=g[2],
+                         occupancy=np.eye(3, dtype=bool)[:, :, None].repeat(2, axis=2))
+    with pytest.raises(PolycubeError, match="not a valid polycube"):
+        cloud_polycube(bad, P, N, None, cfg, "ring.stl")
+    learned = ClassicalCloud(P, N, meta={"provenance": "learned"}, grid_x=g[0], grid_y=g[1], grid_z=g[2], occupancy=occ)
+    with pytest.raises(PolycubeError):
+        cloud_polycube(learned, P, N, 1, cfg, "ring.stl")
