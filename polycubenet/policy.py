@@ -13,8 +13,8 @@ The rules:
   ``classical`` = surface flattening, then the voxel polycube (its last resort, which
   exists for every closed part); ``voxel`` alone; ``learned`` / ``oracle`` alone, or
   followed by the classical chain with ``fallback``.  The voxel polycube is followed by
-  up to :data:`VOXEL_REFINEMENTS` finer ones (``voxel+1``, ...: each ``refine_cells`` more
-  cells than the first acceptable resolution, :func:`polycubenet.voxel.voxel_polycube`),
+  up to :data:`VOXEL_REFINEMENTS` finer ones (``voxel+K``: ``K * refine_cells`` more cells
+  than the resolution the voxel polycube chose, :func:`polycubenet.voxel.voxel_polycube`),
   tried only while the one before gave a mesh that does not end the chain: a coarse voxel
   solid cuts thin features and curved faces (HexGen fertility 1.22 % off at 30 cells,
   0.84 % at 38; rockerarm not valid at 28 cells, min SJ 0.302 at 36).

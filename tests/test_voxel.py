@@ -180,13 +180,13 @@ def test_images_on_the_parts_sharp_edges_stay_on_them():
     assert rep["flipped"] == 0
 
 
-def test_refinement_starts_finer_than_the_first_acceptable_resolution(torus_c):
+def test_refinement_starts_finer_than_the_resolution_chosen_without_it(torus_c):
     V, F = torus_c
     cfg = dataclasses.replace(FAST, max_cells=24)
     *_, poly0, m0 = voxel_polycube(V, F, cfg)
     *_, poly1, m1 = voxel_polycube(V, F, cfg, refine=1)
-    assert m1["first_resolution"] == m0["first_resolution"] and m1["refine"] == 1
-    assert m1["resolution"] >= m0["first_resolution"] + cfg.refine_cells > m0["resolution"]
+    assert m1["base_resolution"] == m0["resolution"] and m1["refine"] == 1 and m0["refine"] == 0
+    assert m1["resolution"] >= m0["resolution"] + cfg.refine_cells
     assert poly1.occupancy.sum() > poly0.occupancy.sum() and m1["genus"] == 1
     with pytest.raises(PolycubeError, match="refinement 9"):
         voxel_polycube(V, F, cfg, refine=9)
