@@ -10,11 +10,15 @@ pictures of every result under ``benchmarks/results/classical/<mode>/<model>/``.
 
     OMP_NUM_THREADS=1 python benchmarks/bench_classical.py [--hexgen DIR] [--parts DIR]
         [--modes classical auto] [--models mount1 rod ...] [--hexes 5000]
-        [--sets hexgen examples hard] [--hard] [--hard-dir DIR] [--part-timeout 600]
+        [--sets hexgen examples hard] [--hard] [--hard-dir DIR] [--hard-seed N] [--part-timeout 600]
 
 ``--sets`` picks the model sets (default ``hexgen examples``); ``hard`` (or ``--hard``) adds the
 hard CAD models of ``benchmarks/hard_models.py``, generated into ``--hard-dir`` (default
-``benchmarks/results/hard_models/``, ignored by git) before the run.  ``mesh_part`` has no
+``benchmarks/results/hard_models/``, ignored by git) before the run.  ``--hard-seed N`` builds
+instead the seeded variants of those models (other dimensions, never tuned on) into
+``benchmarks/results/hard_models_seed<N>/`` (or ``--hard-dir``); their set is named
+``hard_seed<N>`` (rows keyed ``hard_seed<N>/<model>``, pictures under ``<mode>/hard_seed<N>/``),
+so they do not overwrite the fixed set's results (the flag adds the hard set to ``--sets``).  ``mesh_part`` has no
 time limit of its own, so ``--part-timeout S`` (> 0) runs each part in a subprocess killed
 after S seconds (status ``"timeout"``; a subprocess that dies is status ``"crashed"``).
 The summary prints one table per mode and set, with the median time and the counts of valid
@@ -157,7 +161,11 @@ def main(argv=None) -> int:
     ap.add_argument("--sets", nargs="+", choices=SETS, default=["hexgen", "examples"],
                     help="model sets to run (default: hexgen examples)")
     ap.add_argument("--hard", action="store_true", help="add the hard set (same as naming it in --sets)")
-    ap.add_argument("--hard-dir", type=Path, default=HARD, help="where the hard models are generated")
+    ap.add_argument("--hard-dir", type=Path, default=None,
+                    help="where the hard models are generated (default benchmarks/results/hard_models/, "
+                         "or hard_models_seed<N>/ with --hard-seed)")
+    ap.add_argument("--hard-seed", type=int, default=None,
+                    help="build the hard set's seeded variants (set name hard_seed<N>) instead of the fixed models")
     ap.add_argument("--part-timeout", type=float, default=0.0,
                     help="wall seconds per part, each part in a subprocess (default 0: in process, no limit)")
     ap.add_argument("--one", type=Path, help=argparse.SUPPRESS)  # child of --part-timeout: one part
@@ -171,7 +179,7 @@ def main(argv=None) -> int:
         write_json(args.one_json, run_one(args.one, src, mode, args.hexes, args.pictures))
         return 0
 
-    sets = list(dict.fromkeys(args.sets + (["hard"] if args.hard else [])))
+    sets = list(dict.fromkeys(args.sets + (["hard"] if args.hard or args.hard_seed is not None else [])))
     ref_path = args.hexgen / "reference.json"
     reference = json.loads(ref_path.read_text()) if ref_path.exists() else {}
     files: list[tuple[Path, str]] = []
@@ -179,17 +187,20 @@ def main(argv=None) -> int:
         files += [(f, "hexgen") for f in sorted(args.hexgen.glob("*.obj"))]
     if "examples" in sets:  # the example parts as the flow finds them (a STEP file wins over an STL of the same stem)
         files += [(f, "examples") for f in discover([args.parts])]
+    hard_set = "hard" if args.hard_seed is None else f"hard_seed{args.hard_seed}"
     if "hard" in sets:
         sys.path.insert(0, str(ROOT / "benchmarks"))
-        from hard_models import make_all
+        from hard_models import default_folder, make_all
 
         names = args.models or None
-        files += [(f, "hard") for f in make_all(args.hard_dir, names=names)]
+        hard_dir = args.hard_dir or (HARD if args.hard_seed is None else default_folder(args.hard_seed))
+        files += [(f, hard_set) for f in make_all(hard_dir, names=names, seed=args.hard_seed)]
     if args.models:
         files = [(f, s) for f, s in files if f.stem in args.models]
     need_learned = any(m in ("auto", "learned") for m in args.modes)
     src, why_not = learned_source() if need_learned else (None, "not asked for (no auto / learned mode)")
-    out = {"hexes_target": args.hexes, "modes": {}, "auto_note": why_not, "sets": sets,
+    out = {"hexes_target": args.hexes, "modes": {}, "auto_note": why_not,
+           "sets": [hard_set if s == "hard" else s for s in sets],
            "part_timeout": args.part_timeout or None}
     if args.out.exists():  # keep models measured by an earlier (partial) run
         try:
@@ -207,10 +218,13 @@ def main(argv=None) -> int:
             rows.clear()
         pictures = RESULTS / "classical" / mode
         for f, set_name in files:
+            key, pics = f.stem, pictures  # a variant set: its own keys and pictures, the fixed set's stay
+            if set_name not in SETS:
+                key, pics = f"{set_name}/{f.stem}", pictures / set_name
             if args.part_timeout and args.part_timeout > 0:
-                r = run_one_limited(f, mode, args.hexes, pictures, args.part_timeout)
+                r = run_one_limited(f, mode, args.hexes, pics, args.part_timeout)
             else:
-                r = run_one(f, src, mode, args.hexes, pictures)
+                r = run_one(f, src, mode, args.hexes, pics)
             if set_name == "hexgen" and f.stem in reference:
                 r["reference"] = reference[f.stem]
                 ref = reference[f.stem]
@@ -220,8 +234,8 @@ def main(argv=None) -> int:
                 )
             r["set"] = set_name
             r["path"] = str(f)
-            rows[f.stem] = r
-            print(f"{mode:9s} {f.stem:16s} {r['status']:7s} valid={fmt(r.get('valid'))} min={fmt(r.get('sj_min'))} "
+            rows[key] = r
+            print(f"{mode:9s} {key:16s} {r['status']:7s} valid={fmt(r.get('valid'))} min={fmt(r.get('sj_min'))} "
                   f"avg={fmt(r.get('sj_avg'))} hexes={fmt(r.get('hexes'))} H={fmt(r.get('hausdorff'), 4)} "
                   f"t={r['time']:.1f}s flips={fmt(r.get('flipped'))} polycube={r.get('provenance')} "
                   f"{r.get('error') or r.get('fallback_reason') or ''}", flush=True)
