@@ -667,6 +667,41 @@ def test_when_every_source_fails_the_best_invalid_mesh_is_exported(prefect_harne
     assert (tmp_path / "out" / f"synth-{GOOD[0]}" / "hex.vtu").is_file()
 
 
+def test_a_finer_voxel_polycube_is_tried_and_its_own_stages_exported(prefect_harness, part_lib, tmp_path, monkeypatch):
+    """oracle and classical not valid, the voxel mesh valid but under the bar: the flow makes ``voxel+1``
+    (its own cache keys and stage files) and exports it; ``voxel+2`` is never made."""
+    made = []
+    real_make_source = library.make_source
+
+    def fake_make_source(kind, part_path, transform):
+        if kind.startswith("voxel") or kind == "classical":
+            src = library.SidecarOracle(library.sidecar_path(part_path), transform)
+
+            def relabelled(sample, V, F, config):
+                made.append(kind)
+                cloud = src(sample, V, F, config)
+                cloud.meta["provenance"] = "voxel" if kind.startswith("voxel") else kind
+                return cloud
+
+            return relabelled
+        return real_make_source(kind, part_path, transform)
+
+    monkeypatch.setattr(library, "classical_available", lambda: True)
+    monkeypatch.setattr(library, "make_source", fake_make_source)
+    seen = _scripted_quality(monkeypatch, [{"valid": False, "sj_min": -0.3}, {"valid": False, "sj_min": -0.4},
+                                           {"valid": True, "sj_min": 0.1}, {"valid": True, "sj_min": 0.35}])
+    state, res = _mesh([part_lib / f"synth-{GOOD[0]}.stl"], tmp_path / "out", fallback=True)
+    assert state.is_completed() and len(seen) == 4 and len(set(seen)) == 4
+    assert made == ["classical", "voxel", "voxel+1"]
+    row = res["rows"][0]
+    assert row["status"] == "meshed" and row["provenance"] == "voxel"
+    assert row["keys"]["pullback"] in seen[3]
+    reasons = row["fallback"].split("; ")
+    assert reasons[2] == ("pullback: the voxel polycube's hex mesh is valid but its minimum scaled Jacobian 0.100 "
+                          "is under 0.2: the next polycube was tried and the better mesh kept")
+    assert len(reasons) == 3
+
+
 @pytest.mark.slow
 def test_real_dask_cluster_survives_a_killed_worker(prefect_harness, tmp_path):
     """A ``dask scheduler`` and two ``dask worker`` processes on localhost; the flow meshes a folder
