@@ -82,7 +82,7 @@ DIRECTIONS = np.array(
 
 #: version of the construction, part of the flow's cache key for classical clouds: bump it when a
 #: change to this module changes its output for the same settings
-VERSION = "3"  # 2: orientations, plane spacing, decimation above 16000 triangles only; 3: orientation budget
+VERSION = "4"  # 2: orientations, plane spacing, decimation above 16000 triangles only; 3: orientation budget; 4: weight blocks
 
 @dataclasses.dataclass(frozen=True)
 class ClassicalConfig:
@@ -107,6 +107,14 @@ class ClassicalConfig:
         Local/global iterations of the deformation.
     flat_weight_start, flat_weight_end : float
         Flatness weight of the first and last iteration (geometric schedule).
+    weight_blocks : int
+        The weight is held for blocks of this many iterations (each block at the schedule's
+        value of its last iteration), so each axis' sparse system is factorized once per block
+        rather than once per iteration (15 LU factorizations per flattening instead of 75: they
+        were ~45 % of the construction's time).  Measured against 1 (the plain geometric
+        schedule), same labelling and orientation: HexGen joint 11.3 -> 6.6 s, 4 -> 4 flipped
+        triangles; rockerarm 23.1 -> 14.7 s, 964 -> 959; ant 19.0 -> 12.2 s, 2196 -> 2207;
+        mount2 3.1 -> 1.9 s, 10 -> 10; bracket 2.4 -> 1.2 s, 0 -> 0.
     max_faces : int
         A surface with more triangles is first decimated to this many (quadric error,
         open3d), kept only if it stays a closed manifold of the same genus without
@@ -154,6 +162,7 @@ class ClassicalConfig:
     deform_iterations: int = 25
     flat_weight_start: float = 1.0
     flat_weight_end: float = 1e4
+    weight_blocks: int = 5
     retries: int = 2
     fix_rounds: int = 4
     max_faces: int = 16000
@@ -601,8 +610,11 @@ def deform_to_polycube(
     X = V.copy()
     n_it = max(1, config.deform_iterations)
     weights = np.geomspace(config.flat_weight_start, config.flat_weight_end, n_it)
+    block = max(1, int(config.weight_blocks))  # each block at the weight of its last iteration
+    weights = weights[np.minimum((np.arange(n_it) // block + 1) * block - 1, n_it - 1)]
     mu = 1e-6
     centre = V.mean(axis=0)
+    solve: dict = {}  # axis -> (weight, factorized system)
     for it in range(n_it):
         E = _face_edges(X, F)
         R = _best_rotations(E0, E)
@@ -617,9 +629,10 @@ def deform_to_polycube(
             w[faxis == a] += weights[it]
             W = np.tile(w, 3)
             t = T[:, :, a].T.ravel()  # row k * nF + f
-            A = (D.T @ sp.diags(W) @ D + mu * sp.identity(nv)).tocsc()
+            if a not in solve or solve[a][0] != weights[it]:
+                solve[a] = (weights[it], factorized((D.T @ sp.diags(W) @ D + mu * sp.identity(nv)).tocsc()))
             b = D.T @ (W * t) + mu * X[:, a]
-            X[:, a] = factorized(A)(b)
+            X[:, a] = solve[a][1](b)
         X -= X.mean(axis=0) - centre
     Xs = snap_charts(X, F, labels)
     resid = float(np.abs(Xs - X).max())
