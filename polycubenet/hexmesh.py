@@ -96,8 +96,12 @@ def boundary_quads(hexes, *, return_hex: bool = False):
         quads = np.zeros((0, 4), dtype=np.int64)
         return (quads, np.zeros(0, dtype=np.int64)) if return_hex else quads
     key = np.sort(faces, axis=1)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    once = counts[inverse.reshape(-1)] == 1
+    # equal faces side by side (a lexicographic sort: ~3x np.unique(axis=0) on big meshes)
+    order = np.lexsort(key.T[::-1])
+    ks = key[order]
+    group = np.cumsum(np.r_[True, (ks[1:] != ks[:-1]).any(axis=1)]) - 1
+    once = np.empty(len(faces), dtype=bool)
+    once[order] = np.bincount(group)[group] == 1
     quads = faces[once]
     if return_hex:
         return quads, np.nonzero(once)[0] // 6
