@@ -145,10 +145,14 @@ def main(argv=None) -> int:
                     help="blocks: axis-aligned steps, bosses, holes, pockets, slots; mixed: also round bosses, "
                          "slanted cuts and a random rotation")
     ap.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT))
-    ap.add_argument("--steps", type=int, default=4)
+    ap.add_argument("--steps", type=int, default=None,
+                    help="DDIM steps (default: the checkpoint's own default_steps, as mesh_part uses)")
     ap.add_argument("--mesh", action="store_true", help="also mesh the accepted parts through the learned polycube")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/unseen_parts.json"))
     args = ap.parse_args(argv)
+    from polycubenet.inference import resolve_steps
+
+    args.steps = int(resolve_steps(args.steps, "cpu", args.checkpoint)[1])
     t0 = time.perf_counter()
     folder = Path(tempfile.mkdtemp(prefix="unseen-parts-"))
     made = make_parts(folder, args.count, args.seed, args.family)

@@ -60,9 +60,9 @@ SIDECAR_SUFFIX = ".polycube.npz"
 STAGE_VERSIONS = {
     "load_sample": "1",
     "polycube": "1",
-    "extract": "3",  # 2: carries the classical exact map; 3: the voxel solid taken as built
+    "extract": "4",  # 2: carries the classical exact map; 3: the voxel solid taken as built; 4: no plane refit
     "register": "2",  # 2: the classical exact map replaces CPD
-    "pullback": "2",  # 2: classical pullback as in pipeline.mesh_surface
+    "pullback": "3",  # 2: classical pullback as in pipeline.mesh_surface; 3: sj_terms by operators
     "export": "1",
 }
 #: stage names in pipeline order (what ``stage reached`` in the manifest refers to)

@@ -337,23 +337,6 @@ def _repair(occ: np.ndarray, costs, max_flips: int) -> np.ndarray:
     return occ
 
 
-def refit_planes(points, axis, grid, occ, tol) -> list[np.ndarray]:
-    """Move each plane to the mean coordinate of the labelled points within ``tol`` of it."""
-    out = []
-    for a in range(3):
-        g = grid[a].copy()
-        c = points[axis == a, a]
-        for i in range(len(g)):
-            sel = c[np.abs(c - g[i]) <= tol]
-            if len(sel):
-                g[i] = sel.mean()
-        if np.all(np.diff(g) > 0):
-            out.append(g)
-        else:  # refitting would swap planes: keep the clustered positions
-            out.append(grid[a])
-    return out
-
-
 def surface_distances(poly: Polycube, points: np.ndarray, spacing: float, seed: int = 0) -> dict:
     """Cloud -> polycube surface distances and the covered fraction of the surface."""
     V, F = polycube_surface(poly.xs, poly.ys, poly.zs, poly.occupancy)
@@ -456,7 +439,10 @@ def _extract(points, normals, genus, config: ExtractConfig, part, validate) -> P
         raise PolycubeError(f"extracted occupancy is not a valid polycube: {reason}", part)
     cost = _total_cost(occ, costs)
     grid, occ = compress(grid, occ)
-    grid = refit_planes(points, axis, grid, occ, tol=max(2.5 * bw, 0.5 * spacing))
+    # the planes stay at their clusters' trimmed means (step 2).  Re-fitting each one to every labelled
+    # point within 2.5 bandwidths, as before, pulled close planes towards each other: without it 61 -> 65
+    # of 128 pairs of seed 3 exact, held-out seed 2 51/51/52 -> 53/53/54 over three noise draws, the same
+    # parts accepted (32 never-seen, the 10 examples)
     shape = occ.shape
     poly = Polycube(grid[0], grid[1], grid[2], occ, meta={})
     g = solid_genus(occ)
