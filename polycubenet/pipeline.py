@@ -65,7 +65,7 @@ from .pullback import PullbackConfig, pull_back, worth_retry
 from .quality import QualityReport, quality_report
 from .registration import align
 from .sampling import poisson_disk, uniform_sample
-from .structure import ExtractConfig, extract
+from .structure import ExtractConfig, check_genus, extract
 from .voxel import VoxelConfig
 
 
@@ -369,8 +369,7 @@ def cloud_polycube(cloud: PolycubeCloud, P: np.ndarray, N: np.ndarray, genus: in
         if reason is not None:
             raise PolycubeError(f"the {cloud.meta.get('provenance')} solid is not a valid polycube: {reason}", name)
         g = int(solid_genus(occ))
-        if genus is not None and g != genus:
-            raise PolycubeError(f"polycube genus {g} differs from the part's genus {genus}", name)
+        check_genus(g, genus, name)
         poly = Polycube(grid[0], grid[1], grid[2], occ, meta={"genus": g, "grid_shape": list(occ.shape), "exact": True})
     poly.meta["provenance"] = cloud.meta.get("provenance")
     return poly

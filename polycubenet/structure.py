@@ -355,6 +355,13 @@ def surface_distances(poly: Polycube, points: np.ndarray, spacing: float, seed: 
     }
 
 
+def check_genus(got: int, genus: int | None, part: str | None = None) -> None:
+    """Raise :class:`~polycubenet.errors.PolycubeError` when a polycube's genus ``got`` is not the
+    part's ``genus`` (``None``: not known, nothing to check)."""
+    if genus is not None and int(got) != int(genus):
+        raise PolycubeError(f"polycube genus {int(got)} differs from the part's genus {int(genus)}", part)
+
+
 def extract(
     points: np.ndarray,
     normals: np.ndarray,
@@ -448,8 +455,7 @@ def _extract(points, normals, genus, config: ExtractConfig, part, validate) -> P
     g = solid_genus(occ)
     poly.meta.update(genus=int(g), spacing=spacing, noise=noise, grid_shape=list(shape), cost=cost)
     if validate:
-        if genus is not None and g != genus:
-            raise PolycubeError(f"polycube genus {g} differs from the part's genus {genus}", part)
+        check_genus(g, genus, part)
         dist = surface_distances(poly, points, spacing)
         covered = float((dist.pop("_d_surf") <= config.cover_spacings * spacing).mean())
         dist["coverage"] = covered
