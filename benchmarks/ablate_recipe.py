@@ -47,13 +47,18 @@ ROWS: dict[str, list[str]] = {
     "anchored_vn_regress": ["--preset", "cpu-anchored-normals", "--prediction", "v", "--schedule", "cosine_ztsnr",
                             "--t-bias", "1000"],
     # displacements 4x larger in network units (gain 32): about the scale of the unit normals beside them
+    # the shipped recipe (anchor normals, one-step regression) at two batch sizes, for continuing a trained file
+    "regress_b12": ["--preset", "cpu-anchored-normals", "--prediction", "v", "--schedule", "cosine_ztsnr",
+                    "--t-bias", "1000", "--batch", "12"],
+    "regress_b48": ["--preset", "cpu-anchored-normals", "--prediction", "v", "--schedule", "cosine_ztsnr",
+                    "--t-bias", "1000", "--batch", "48"],
     "anchored_vn_gain32": ["--preset", "cpu-anchored-normals", "--prediction", "v", "--schedule", "cosine_ztsnr",
                            "--anchor-gain", "32"],
 }
 
 
 #: rows sampled with their own number of DDIM steps (a row trained only at t = T - 1 knows no other step)
-ROW_EVAL_STEPS = {"anchored_vn_regress": 1}
+ROW_EVAL_STEPS = {"anchored_vn_regress": 1, "regress_b12": 1, "regress_b48": 1}
 
 
 def run_row(name: str, args) -> dict:

@@ -185,7 +185,8 @@ def main(argv=None) -> int:
                  "label_accuracy": ev.get("label_accuracy_median"),
                  # 1: noise-wide plane kernel; 2: kernel floored at 0.4 spacings + contact repair (session 3);
                  # 3: planes of 3 points / 0.1 %, a retry keeping single-point planes, the pair's genus given (session 6)
-                 "extraction": 3,
+                 # 4: the planes stay at their clusters' trimmed means, no refit to every point near them (session 9)
+                 "extraction": 4,
                  "label_accuracy_part_normals": ev.get("label_accuracy_part_normals_median"),
                  "anchored": bool((meta.get("model_config") or {}).get("anchored")),
                  "chamfer_median": ev["chamfer_median"], "chamfer_identity": ev.get("chamfer_identity_median"),
