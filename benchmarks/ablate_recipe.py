@@ -47,18 +47,15 @@ ROWS: dict[str, list[str]] = {
     "anchored_vn_regress": ["--preset", "cpu-anchored-normals", "--prediction", "v", "--schedule", "cosine_ztsnr",
                             "--t-bias", "1000"],
     # displacements 4x larger in network units (gain 32): about the scale of the unit normals beside them
-    # the shipped recipe (anchor normals, one-step regression) at two batch sizes, for continuing a trained file
-    "regress_b12": ["--preset", "cpu-anchored-normals", "--prediction", "v", "--schedule", "cosine_ztsnr",
-                    "--t-bias", "1000", "--batch", "12"],
-    "regress_b48": ["--preset", "cpu-anchored-normals", "--prediction", "v", "--schedule", "cosine_ztsnr",
-                    "--t-bias", "1000", "--batch", "48"],
     "anchored_vn_gain32": ["--preset", "cpu-anchored-normals", "--prediction", "v", "--schedule", "cosine_ztsnr",
                            "--anchor-gain", "32"],
 }
+# the shipped recipe (anchor normals, one-step regression) at two batch sizes, for continuing a trained file
+ROWS.update({f"regress_b{b}": ROWS["anchored_vn_regress"] + ["--batch", str(b)] for b in (12, 48)})
 
 
 #: rows sampled with their own number of DDIM steps (a row trained only at t = T - 1 knows no other step)
-ROW_EVAL_STEPS = {"anchored_vn_regress": 1, "regress_b12": 1, "regress_b48": 1}
+ROW_EVAL_STEPS = {name: 1 for name, flags in ROWS.items() if "--t-bias" in flags and flags[flags.index("--t-bias") + 1] == "1000"}
 
 
 def run_row(name: str, args) -> dict:
