@@ -9,8 +9,10 @@ Builds ``--count`` new CAD-like parts with gmsh's OpenCASCADE kernel, each from 
 0-2 through-holes (round or square), 0-1 pockets and sometimes a slot, with random sizes.
 For each part it runs the learned source exactly as ``mesh_part`` does (the shipped
 checkpoint, its default steps, 4096 learned points): generate, outlier filter, structure
-extraction with the part's genus; ``--mesh`` also meshes the accepted ones through the
-learned polycube and checks validity.  Prints one row per part and the accepted fraction,
+extraction with the part's genus; ``--mesh`` also meshes every part (and the examples) through
+the learned source alone as ``mesh_part`` runs it (first draw, then the model's second draw:
+``polycubenet.policy.learned_retry``) and counts the valid meshes within the Hausdorff bar, and
+how many of them the first draw gave.  Prints one row per part and the accepted fraction,
 beside the same measure on the 10 example parts; writes the JSON.
 """
 
@@ -115,20 +117,28 @@ def make_parts(folder: Path, count: int, seed: int, family: str = "blocks") -> l
     return out
 
 
-def mesh_learned(paths: list[Path]) -> dict:
-    """Mesh through the learned polycube only (no fallback): name -> (valid, SJ min)."""
+def mesh_learned(paths: list[Path], checkpoint: str, steps: int) -> dict:
+    """Mesh through the learned source only (``--polycube learned``: the first draw at ``steps``,
+    then the model's second draw when the policy has one; no classical fallback), as
+    ``mesh_part`` does: name -> (valid and faithful, SJ min, which draw was kept: 1, 2 or None,
+    seconds)."""
     from polycubenet.inference import ModelSource
     from polycubenet.pipeline import PipelineConfig, mesh_part
+    from polycubenet.policy import faithful
 
     res = {}
     for p in paths:
+        t0 = time.perf_counter()
         try:
-            r = mesh_part(p, ModelSource(device="cpu"), PipelineConfig(target_hexes=3000))
+            r = mesh_part(p, ModelSource(checkpoint, steps=steps, device="cpu"),
+                          PipelineConfig(polycube="learned", target_hexes=3000))
             q = r.report
-            res[p.stem] = (bool(q is not None and q.valid and r.provenance == "learned"),
-                           None if q is None else q.sj_min)
+            ok = bool(q is not None and q.valid and r.provenance == "learned" and faithful(r.mesh.meta))
+            draw = 1 if r.fallback_reason is None else 2
+            res[p.stem] = (ok, None if q is None else q.sj_min, draw if ok else None,
+                           round(time.perf_counter() - t0, 1))
         except Exception as exc:  # noqa: BLE001 - report the failure in the row
-            res[p.stem] = (False, f"{type(exc).__name__}")
+            res[p.stem] = (False, f"{type(exc).__name__}", None, round(time.perf_counter() - t0, 1))
     return res
 
 
@@ -147,7 +157,7 @@ def main(argv=None) -> int:
     ap.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT))
     ap.add_argument("--steps", type=int, default=None,
                     help="DDIM steps (default: the checkpoint's own default_steps, as mesh_part uses)")
-    ap.add_argument("--mesh", action="store_true", help="also mesh the accepted parts through the learned polycube")
+    ap.add_argument("--mesh", action="store_true", help="also mesh every part and example through the learned source alone (both draws)")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/unseen_parts.json"))
     args = ap.parse_args(argv)
     from polycubenet.inference import resolve_steps
@@ -159,24 +169,37 @@ def main(argv=None) -> int:
     rows, _ = part_rows(args.checkpoint, [p for p, _ in made], 4096, args.steps)
     for r, (_, desc) in zip(rows, made):
         r["shape"] = desc
-    meshed = mesh_learned([p for (p, _), r in zip(made, rows) if r["accepted"]]) if args.mesh else {}
-    ex_rows, _ = part_rows(args.checkpoint, sorted((ROOT / "examples/parts").glob("*.step")), 4096, args.steps)
-    print(f"\n{'part':<18} {'genus':>5} {'learned polycube':<28} {'mesh':<14} shape")
+    examples = sorted((ROOT / "examples/parts").glob("*.step"))
+    meshed = mesh_learned([p for p, _ in made], args.checkpoint, args.steps) if args.mesh else {}
+    ex_meshed = mesh_learned(examples, args.checkpoint, args.steps) if args.mesh else {}
+    ex_rows, _ = part_rows(args.checkpoint, examples, 4096, args.steps)
+    print(f"\n{'part':<18} {'genus':>5} {'first draw':<28} {'learned mesh':<22} shape")
     for r in rows:
         m = meshed.get(r["part"])
-        ms = "" if m is None else ("valid" if m[0] else "invalid") + (f" {m[1]:.3f}" if isinstance(m[1], float) else f" {m[1]}")
-        print(f"{r['part']:<18} {r['genus']:>5} {r['category']:<28} {ms:<14} {r['shape']}")
+        ms = "" if m is None else (("valid, draw %d" % m[2]) if m[0] else "no") + (
+            f" {m[1]:.3f}" if isinstance(m[1], float) else f" {m[1]}")
+        print(f"{r['part']:<18} {r['genus']:>5} {r['category']:<28} {ms:<22} {r['shape']}")
     acc = sum(r["accepted"] for r in rows)
     ex_acc = sum(r["accepted"] for r in ex_rows)
     print(f"\nunseen parts: learned polycube accepted {acc}/{len(rows)} ({acc / max(1, len(rows)):.0%}); "
-          f"example parts: {ex_acc}/{len(ex_rows)} ({ex_acc / max(1, len(ex_rows)):.0%})")
+          f"example parts: {ex_acc}/{len(ex_rows)} ({ex_acc / max(1, len(ex_rows)):.0%})  (first draw, at extraction)")
+
+    def counts(m: dict) -> tuple[int, int]:
+        return sum(v[2] == 1 for v in m.values()), sum(bool(v[0]) for v in m.values())
+
     if meshed:
-        print(f"unseen parts meshed valid through the learned polycube: {sum(v for v, _ in meshed.values())}/{len(rows)}")
+        (u1, u), (e1, e) = counts(meshed), counts(ex_meshed)
+        print(f"meshed valid and faithful through the learned source (--polycube learned): unseen {u}/{len(rows)} "
+              f"({u1} by the first draw), examples {e}/{len(examples)} ({e1} by the first draw)")
     write_json(args.json, {"checkpoint": args.checkpoint, "seed": args.seed, "family": args.family, "count": len(rows), "steps": args.steps,
                            "accepted": acc, "examples_accepted": ex_acc, "examples": len(ex_rows),
-                           "meshed_valid": sum(v for v, _ in meshed.values()) if meshed else None,
+                           "meshed_valid": counts(meshed)[1] if meshed else None,
+                           "meshed_first_draw": counts(meshed)[0] if meshed else None,
+                           "examples_meshed_valid": counts(ex_meshed)[1] if meshed else None,
+                           "examples_meshed_first_draw": counts(ex_meshed)[0] if meshed else None,
                            "rows": rows, "example_rows": ex_rows,
                            "mesh": {k: list(v) for k, v in meshed.items()},
+                           "example_mesh": {k: list(v) for k, v in ex_meshed.items()},
                            "seconds": round(time.perf_counter() - t0, 1)})
     print(f"wrote {args.json}")
     return 0

@@ -236,6 +236,14 @@ class ModelSource:
                  device: str | None = None):
         self.model, self.steps, self.seed, self.device = model, steps, seed, device
 
+    def retry_source(self) -> "ModelSource | None":
+        """The model's second draw (:func:`polycubenet.policy.learned_retry`): the same model, seed
+        and device at more DDIM steps; None when this source's steps already are as many."""
+        from .policy import learned_retry
+
+        steps = learned_retry(resolve_steps(self.steps, self.device, self.model)[1])
+        return None if steps is None else ModelSource(self.model, steps=steps, seed=self.seed, device=self.device)
+
     def __call__(self, sample, V, F, config) -> PolycubeCloud:
         loaded = load_model(self.model, self.device)
         t0 = time.perf_counter()

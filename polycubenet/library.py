@@ -197,7 +197,7 @@ def stage_params(config: PipelineConfig, *, polycube: str = "oracle", polycube_e
     return {
         "load_sample": {"n_sample": config.n_sample, "seed": config.seed, "load": dict(load_kw or {})},
         "polycube": {"source": polycube, "seed": config.seed, "extra": polycube_extra,
-                     "n_points": config.n_learned if polycube == "learned" else config.n_polycube},
+                     "n_points": config.n_learned if refinement(polycube)[0] == "learned" else config.n_polycube},
         "extract": {"extract": config.extract},
         "register": {"n_register": config.n_register, "seed": config.seed},
         "pullback": {"target_hexes": config.target_hexes, "target_size": config.target_size, "pullback": config.pullback},
@@ -299,11 +299,14 @@ def classical_available() -> bool:
     return importlib.util.find_spec("polycubenet.classical") is not None
 
 
-def make_source(kind: str, part_path: str | os.PathLike, transform):
+def make_source(kind: str, part_path: str | os.PathLike, transform, *, checkpoint: str | os.PathLike | None = None,
+                device: str | None = None):
     """A per-part polycube source by name: ``oracle``, ``classical``, ``voxel`` or ``voxel+K``
-    (the voxel polycube ``K`` refinement steps finer, :func:`polycubenet.policy.source_names`).
+    (the voxel polycube ``K`` refinement steps finer, :func:`polycubenet.policy.source_names`),
+    or ``learned+1``: the model of ``checkpoint`` (on ``device``) drawn again at
+    :data:`polycubenet.policy.LEARNED_RETRY_STEPS` DDIM steps, one part at a time.
 
-    (``learned`` is not made here: the flow runs the model in batches across parts.)
+    (``learned`` is not made here: the flow runs the model's first draw in batches across parts.)
     This is the one place the classical fallbacks plug in.
     """
     if kind == "oracle":
@@ -319,7 +322,13 @@ def make_source(kind: str, part_path: str | os.PathLike, transform):
         from .voxel import VoxelSource
 
         return VoxelSource(refine=refine)
-    raise ValueError(f"unknown per-part polycube source {kind!r}; expected 'oracle', 'classical', 'voxel' or 'voxel+K'")
+    if kind == "learned+1":
+        from .inference import ModelSource
+        from .policy import LEARNED_RETRY_STEPS
+
+        return ModelSource(checkpoint, steps=LEARNED_RETRY_STEPS, device=device)
+    raise ValueError(f"unknown per-part polycube source {kind!r}; expected 'oracle', 'classical', 'voxel', 'voxel+K' "
+                     "or 'learned+1'")
 
 
 def source_extra(kind: str, part_path: str | os.PathLike, checkpoint: str | os.PathLike | None = None, *,
@@ -333,10 +342,11 @@ def source_extra(kind: str, part_path: str | os.PathLike, checkpoint: str | os.P
     if kind == "oracle":
         sc = sidecar_path(part_path)
         return {"sidecar": file_hash(sc) if sc.is_file() else None}
-    if kind == "learned":
+    if refinement(kind)[0] == "learned":
         from .inference import resolve_steps
+        from .policy import LEARNED_RETRY_STEPS
 
-        dev_type, used = resolve_steps(steps, device, checkpoint)
+        dev_type, used = resolve_steps(steps if kind == "learned" else LEARNED_RETRY_STEPS, device, checkpoint)
         return {"checkpoint": file_hash(checkpoint) if checkpoint and Path(checkpoint).is_file() else str(checkpoint),
                 "steps": used, "device": dev_type}
     if kind == "classical" and classical_available():
@@ -385,10 +395,13 @@ def read_loaded(path: str | os.PathLike):
 
 
 def polycube_cloud(kind: str, part_path: str | os.PathLike, loaded: str | os.PathLike, dest: str | os.PathLike,
-                   config: PipelineConfig) -> Path:
-    """Run a per-part polycube source (:func:`make_source`) on a loaded part; save the cloud."""
+                   config: PipelineConfig, *, checkpoint: str | os.PathLike | None = None,
+                   device: str | None = None) -> Path:
+    """Run a per-part polycube source (:func:`make_source`; ``checkpoint`` and ``device`` for the
+    model's second draw) on a loaded part; save the cloud."""
     part, sample, T, _ = read_loaded(loaded)
-    cloud = make_source(kind, part_path, T)(sample, part.vertices, part.faces, config)
+    cloud = make_source(kind, part_path, T, checkpoint=checkpoint, device=device)(sample, part.vertices, part.faces,
+                                                                               config)
     cloud.meta.setdefault("provenance", kind)
     return cloud.save(dest)
 

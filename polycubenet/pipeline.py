@@ -116,21 +116,26 @@ def source_chain(source, config: PipelineConfig) -> list[tuple[str, Callable]]:
     ``learned``: the injected source alone (the classical chain when it is None);
     ``classical``: the surface-flattening construction, then the voxel polycube;
     ``voxel``: the voxel polycube alone; ``auto``: the injected source, then the classical chain;
-    the voxel polycube is followed by its refinements (``voxel+1``, ...).
+    the voxel polycube is followed by its refinements (``voxel+1``, ...), and an injected source
+    with a ``retry_source()`` (:class:`polycubenet.inference.ModelSource`) by that second draw
+    (``learned+1``).
     """
     from .voxel import VoxelSource
 
     if config.polycube not in POLYCUBE_MODES:
         raise ValueError(f"polycube must be one of {POLYCUBE_MODES}; got {config.polycube!r}")
     mode = "classical" if source is None and config.polycube in ("learned", "auto") else config.polycube
+    # the model's second draw, when the injected source has one (policy.learned_retry)
+    retry = getattr(source, "retry_source", None)
+    retry = retry() if callable(retry) and mode in ("learned", "auto") else None
 
     def make(name: str):
         base, k = refinement(name)
         if base == "voxel":
             return VoxelSource(config.voxel, refine=k)
-        return {"learned": source, "classical": ClassicalSource(config.classical)}[name]
+        return {"learned": source, "learned+1": retry, "classical": ClassicalSource(config.classical)}[name]
 
-    return [(name, make(name)) for name in source_names(mode)]
+    return [(name, make(name)) for name in source_names(mode, retry=retry is not None)]
 
 
 class PolycubeSource(Protocol):

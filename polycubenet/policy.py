@@ -10,6 +10,11 @@ to ``seconds`` as it finishes, and return an :class:`Attempt`; the policy decide
 The rules:
 
 * **Order** (:func:`source_names`): ``auto`` = learned, then the classical chain;
+  the learned source is followed by a second draw of the model at
+  :data:`LEARNED_RETRY_STEPS` DDIM steps (``learned+1``, :func:`learned_retry`) when its first
+  draw used fewer (the checkpoint's default: 1 step on a CPU), tried only when the first
+  is left: one step is best on synthetic pairs, more steps on real parts whose slanted or round
+  features the one-step cloud blurs (never-seen mixed parts: 6 -> 12 / 16 accepted);
   ``classical`` = surface flattening, then the voxel polycube (its last resort, which
   exists for every closed part); ``voxel`` alone; ``learned`` / ``oracle`` alone, or
   followed by the classical chain with ``fallback``.  The voxel polycube is followed by
@@ -56,6 +61,16 @@ from .errors import PartError, PolycubeError
 MODES = ("auto", "learned", "classical", "voxel")
 #: finer voxel polycubes after the first one (``voxel+1`` ... ``voxel+3``)
 VOXEL_REFINEMENTS = 3
+#: DDIM steps of the learned source's second draw (``learned+1``)
+LEARNED_RETRY_STEPS = 4
+
+
+def learned_retry(steps) -> int | None:
+    """DDIM steps of the model's second draw after a first one at ``steps`` (an int, or the
+    GPU's ``"stride4"``): :data:`LEARNED_RETRY_STEPS` when that is more, else None (no retry)."""
+    if isinstance(steps, (int, np.integer)) and not isinstance(steps, bool) and steps < LEARNED_RETRY_STEPS:
+        return LEARNED_RETRY_STEPS
+    return None
 
 
 def refinement(source: str) -> tuple[str, int]:
@@ -68,17 +83,21 @@ def refinement(source: str) -> tuple[str, int]:
 
 
 def source_label(source: str) -> str:
-    """How reasons name a source: ``voxel+2`` is "voxel (refinement 2)"."""
+    """How reasons name a source: ``voxel+2`` is "voxel (refinement 2)", ``learned+1``
+    "learned (second draw, 4 steps)"."""
     base, k = refinement(source)
+    if base == "learned" and k:
+        return f"learned (second draw, {LEARNED_RETRY_STEPS} steps)"
     return f"{base} (refinement {k})" if k else source
 
 
-def source_names(mode: str, fallback: bool = False, classical: bool = True) -> list[str]:
+def source_names(mode: str, fallback: bool = False, classical: bool = True, retry: bool = False) -> list[str]:
     """The sources a part tries, in order, for polycube mode ``mode``.
 
     ``fallback`` adds the classical chain after ``learned`` / ``oracle`` (``auto`` always has
     it); ``classical=False`` (the flattening construction unavailable) leaves the voxel
-    polycube alone in the classical chain.
+    polycube alone in the classical chain; ``retry`` (the first draw's steps have a
+    :func:`learned_retry`) adds the model's second draw ``learned+1`` after ``learned``.
     """
     voxel = ["voxel"] + [f"voxel+{k}" for k in range(1, VOXEL_REFINEMENTS + 1)]
     if mode == "voxel":
@@ -86,9 +105,8 @@ def source_names(mode: str, fallback: bool = False, classical: bool = True) -> l
     rest = (["classical"] if classical else []) + voxel
     if mode == "classical":
         return rest
-    if mode == "auto":
-        return ["learned"] + rest
-    return [mode] + (rest if fallback else [])
+    first = ["learned", "learned+1"] if mode in ("auto", "learned") and retry else [mode if mode != "auto" else "learned"]
+    return first + (rest if fallback or mode == "auto" else [])
 
 
 def leaves_source(source: str, exc: BaseException) -> bool:
@@ -98,7 +116,7 @@ def leaves_source(source: str, exc: BaseException) -> bool:
     if isinstance(exc, PolycubeError):
         return True
     # the learned attempt may fail in ways the classical chain never depends on (the model, CPD, ...)
-    return source == "learned" and isinstance(exc, Exception)
+    return refinement(source)[0] == "learned" and isinstance(exc, Exception)
 
 
 def distance_to_part(meta: dict) -> float | None:
@@ -198,7 +216,8 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
 
     ``attempt(source, tracker)`` runs the source's stages, setting ``tracker.stage`` as it goes
     and adding stage seconds to ``tracker.seconds``; it returns an :class:`Attempt` or raises.
-    A refinement (``voxel+K``) is tried only when the source just before it gave a mesh.
+    A voxel refinement (``voxel+K``) is tried only when the source just before it gave a mesh;
+    the model's second draw (``learned+1``) whenever the first is left.
     An error that :func:`leaves_source` does not cover is raised as it is, with
     ``exc.stage`` and ``exc.source`` set, after ``exc.fallback_reason`` records the sources
     left before it.
@@ -219,7 +238,8 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
     meshed: set = set()  # the sources that gave a mesh
     for i, src in enumerate(sources):
         last = i == len(sources) - 1
-        if refinement(src)[1] and (i == 0 or sources[i - 1] not in meshed):
+        base, k = refinement(src)
+        if base == "voxel" and k and (i == 0 or sources[i - 1] not in meshed):
             continue  # its coarser voxel polycube gave no mesh: a finer one is no answer to that
         tracker = StageTracker()
         try:
@@ -231,7 +251,7 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
                 exc.fallback_reason = "; ".join(reasons) or None
                 raise
             reject(tracker.seconds)
-            reasons.append(f"{src} polycube rejected at {tracker.stage}: {error_reason(exc)}")
+            reasons.append(f"{source_label(src)} polycube rejected at {tracker.stage}: {error_reason(exc)}")
             last_error = (exc, src)
             continue
         if not att.seconds:

@@ -27,9 +27,12 @@ def load_sample(path: str, dest: str, key: str, config: PipelineConfig, name: st
 
 
 @task(**task_options("polycube"))
-def polycube_cloud(kind: str, path: str, loaded: str, dest: str, key: str, config: PipelineConfig, name: str = "") -> dict:
-    """A per-part polycube cloud (``oracle`` sidecar, ``classical`` construction)."""
-    return _record("polycube", dest, lambda: library.polycube_cloud(kind, path, loaded, dest, config))
+def polycube_cloud(kind: str, path: str, loaded: str, dest: str, key: str, config: PipelineConfig, name: str = "",
+                   checkpoint: str | None = None, device: str | None = None) -> dict:
+    """A per-part polycube cloud (``oracle`` sidecar, ``classical`` construction, voxel polycube, the
+    model's second draw ``learned+1`` from ``checkpoint`` on ``device``)."""
+    return _record("polycube", dest, lambda: library.polycube_cloud(kind, path, loaded, dest, config,
+                                                                     checkpoint=checkpoint, device=device))
 
 
 @task(name="generate", cache_policy=NO_CACHE, retries=RETRIES, retry_delay_seconds=[5, 30],
@@ -101,7 +104,8 @@ def _record(stage: str, dest: str, fn) -> dict:
 
 @task(name="part", cache_policy=NO_CACHE, persist_result=False, task_run_name="part-{name}")
 def mesh_chain(name: str, path: str, loaded: str, sources: list[str], keys: dict, paths: dict, config: PipelineConfig,
-               formats: list[str], out_dir: str, result_storage: str, learned: dict | None = None) -> dict:
+               formats: list[str], out_dir: str, result_storage: str, learned: dict | None = None,
+               model: dict | None = None) -> dict:
     """Everything after ``load_sample`` for one part: for each polycube source in ``sources``
     (in order) the stage tasks polycube -> extract -> register -> pullback, then export.
 
@@ -114,7 +118,8 @@ def mesh_chain(name: str, path: str, loaded: str, sources: list[str], keys: dict
     ``keys[source][stage]`` and ``paths[source][stage]`` are the cache keys and files of each
     source's chain (:func:`polycubenet.library.chain_keys`); ``learned`` is ``{"record": ...}``
     (the batched generation's cloud) or ``{"error": ...}`` (generation was rejected) when the
-    first source is the model.  A source is left for the next one when its polycube is
+    first source is the model; ``model`` (``checkpoint``, ``device``) is for its second draw
+    ``learned+1``, made here one part at a time.  A source is left for the next one when its polycube is
     rejected (``PolycubeError`` at polycube or extract) or its pulled-back mesh is not valid;
     the first valid mesh is exported, or when none is, the one with the highest minimum scaled
     Jacobian (``pipeline.mesh_rank``).  A ``PartError`` / ``PolycubeError`` elsewhere is final
@@ -133,13 +138,13 @@ def mesh_chain(name: str, path: str, loaded: str, sources: list[str], keys: dict
         # stage fails, so a retry would recompute them
         with transaction(commit_mode=CommitMode.EAGER):
             return _chain(state, name, path, loaded, sources, keys, paths, config, formats, out_dir,
-                          result_storage, learned)
+                          result_storage, learned, model or {})
     except Exception as exc:  # a bug: fail this task run, and say where
         exc.stage = state["stage"]
         raise
 
 
-def _chain(state, name, path, loaded, sources, keys, paths, config, formats, out_dir, result_storage, learned):
+def _chain(state, name, path, loaded, sources, keys, paths, config, formats, out_dir, result_storage, learned, model):
     """The body of :func:`mesh_chain` (``state["stage"]`` follows the stage reached): each source's
     stages as tasks, the choice between sources by :func:`polycubenet.policy.run_chain`."""
     from polycubenet.errors import PolycubeError
@@ -173,7 +178,7 @@ def _chain(state, name, path, loaded, sources, keys, paths, config, formats, out
             tracker.seconds["polycube"] = float(learned["record"].get("seconds") or 0.0)
         else:
             run("polycube", polycube_cloud, src, tracker, kind=src, path=path, loaded=loaded, dest=p["polycube"],
-                config=config)
+                config=config, **(model if src == "learned+1" else {}))
         run("extract", cleanup_extract, src, tracker, cloud=att["polycube"]["path"], loaded=loaded, dest=p["extract"],
             config=config)
         run("register", register, src, tracker, extracted=att["extract"]["path"], loaded=loaded, dest=p["register"],

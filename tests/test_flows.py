@@ -567,41 +567,46 @@ def test_learned_batches_then_classical_fallback(prefect_harness, part_lib, tiny
     rows = _rows(res)
     good, wrong = rows[f"synth-{GOOD[0]}"], rows["wrong_genus"]
     assert good["status"] == "meshed" and good["provenance"] == "classical"
+    # the first draw (2 steps) was rejected, then the model's second draw at 4 steps (the policy), then classical
     assert good["fallback"].startswith("learned polycube rejected")
+    assert "learned (second draw, 4 steps) polycube rejected" in good["fallback"]
     assert wrong["status"] == "failed" and wrong["stage"] == "polycube" and "no voxel polycube" in wrong["error"]
     assert wrong["fallback"].startswith("learned polycube rejected")
     assert "classical polycube rejected at extract" in wrong["fallback"] and "genus" in wrong["fallback"]
     work = out / ".work"
     learned = [library.PolycubeCloud.load(p) for p in work.rglob("polycube-*.npz")
                if library.PolycubeCloud.load(p).meta.get("provenance") == "learned"]
-    assert len(learned) == 2 and all(c.points.shape == (SMALL["n_learned"], 3) for c in learned)
+    assert len(learned) == 4 and all(c.points.shape == (SMALL["n_learned"], 3) for c in learned)
+    assert sorted(int(c.meta["steps"]) for c in learned) == [2, 2, 4, 4]
 
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
 
     with get_client(sync_client=True) as client:
         runs = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[_flow_run_of(res)])))
-    assert sum(tr.name.startswith("generate-") for tr in runs) == 2
+    assert sum(tr.name.startswith("generate-") for tr in runs) == 2  # the second draws are per part
 
     # the DDIM steps are in the learned polycube's key: other steps generate anew, the same steps reuse
+    # (the second draw's 4 steps whatever the first's); a first draw at 4 steps has no second
     def learned_files():
         return {p.name for p in work.rglob("polycube-*.npz")
                 if library.PolycubeCloud.load(p).meta.get("provenance") == "learned"}
 
     first = learned_files()
     parts = [part_lib / f"synth-{GOOD[0]}.stl", part_lib / "wrong_genus.obj"]
-    for steps, expected in ((3, 4), (2, 4)):
-        state, _ = _mesh(parts, out, polycube="auto", checkpoint=str(tiny_checkpoint), steps=steps,
-                         point_budget=budget)
+    for steps, expected in ((3, 6), (2, 6), (4, 8)):
+        state, res = _mesh(parts, out, polycube="auto", checkpoint=str(tiny_checkpoint), steps=steps,
+                           point_budget=budget)
         assert state.is_completed() and len(learned_files()) == expected
     assert first < learned_files()
+    assert "second draw" not in _rows(res)[f"synth-{GOOD[0]}"]["fallback"]
 
 
 def _fake_sources(monkeypatch):
     """``classical``: the part's sidecar relabelled (fast); ``voxel``: gives up."""
     real_make_source = library.make_source
 
-    def fake_make_source(kind, part_path, transform):
+    def fake_make_source(kind, part_path, transform, **model):
         if kind == "classical":
             src = library.SidecarOracle(library.sidecar_path(part_path), transform)
 
@@ -616,7 +621,7 @@ def _fake_sources(monkeypatch):
                 raise PolycubeError("no voxel polycube in this test")
 
             return voxel
-        return real_make_source(kind, part_path, transform)
+        return real_make_source(kind, part_path, transform, **model)
 
     monkeypatch.setattr(library, "classical_available", lambda: True)
     monkeypatch.setattr(library, "make_source", fake_make_source)
@@ -673,7 +678,7 @@ def test_a_finer_voxel_polycube_is_tried_and_its_own_stages_exported(prefect_har
     made = []
     real_make_source = library.make_source
 
-    def fake_make_source(kind, part_path, transform):
+    def fake_make_source(kind, part_path, transform, **model):
         if kind.startswith("voxel") or kind == "classical":
             src = library.SidecarOracle(library.sidecar_path(part_path), transform)
 
@@ -684,7 +689,7 @@ def test_a_finer_voxel_polycube_is_tried_and_its_own_stages_exported(prefect_har
                 return cloud
 
             return relabelled
-        return real_make_source(kind, part_path, transform)
+        return real_make_source(kind, part_path, transform, **model)
 
     monkeypatch.setattr(library, "classical_available", lambda: True)
     monkeypatch.setattr(library, "make_source", fake_make_source)

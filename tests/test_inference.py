@@ -232,3 +232,22 @@ def test_a_checkpoints_own_default_steps_are_used_on_cpu(tmp_path):
     np.testing.assert_array_equal(a, b)
     assert np.abs(a - c).max() > 1e-4
     assert resolve_steps(None, "cpu", path) == ("cpu", 2) and resolve_steps(7, "cpu", path) == ("cpu", 7)
+
+
+def test_model_source_second_draw_and_its_place_in_the_chain(ckpt):
+    """``retry_source`` is the same model, seed and device at the policy's retry steps, only after a
+    cheaper first draw; the pipeline puts it right after the first (policy.source_names)."""
+    from polycubenet.pipeline import source_chain
+    from polycubenet.policy import LEARNED_RETRY_STEPS
+
+    src = ModelSource(ckpt, steps=1, seed=2, device="cpu")
+    retry = src.retry_source()
+    assert (retry.model, retry.steps, retry.seed, retry.device) == (ckpt, LEARNED_RETRY_STEPS, 2, "cpu")
+    assert retry.retry_source() is None and ModelSource(ckpt, steps=8, device="cpu").retry_source() is None
+    chain = source_chain(src, PipelineConfig(polycube="auto"))
+    assert [n for n, _ in chain][:3] == ["learned", "learned+1", "classical"]
+    assert chain[0][1] is src and chain[1][1].steps == LEARNED_RETRY_STEPS
+    assert [n for n, _ in source_chain(retry, PipelineConfig(polycube="auto"))][:2] == ["learned", "classical"]
+    assert [n for n, _ in source_chain(src, PipelineConfig(polycube="learned"))] == ["learned", "learned+1"]
+    # an injected source without a second draw (a test's fake, the oracle) is used alone
+    assert [n for n, _ in source_chain(lambda *a: None, PipelineConfig(polycube="learned"))] == ["learned"]

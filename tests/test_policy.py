@@ -6,7 +6,8 @@ from __future__ import annotations
 import pytest
 
 from polycubenet.errors import PartError, PolycubeError
-from polycubenet.policy import Attempt, refinement, run_chain, source_label, source_names
+from polycubenet.policy import (LEARNED_RETRY_STEPS, Attempt, learned_retry, leaves_source, refinement, run_chain,
+                                source_label, source_names)
 
 
 def _scripted(script: dict):
@@ -43,6 +44,25 @@ def test_source_order():
     assert source_names("classical", classical=False) == VOXELS
     assert refinement("voxel+2") == ("voxel", 2) and refinement("voxel") == ("voxel", 0)
     assert refinement("classical") == ("classical", 0) and source_label("voxel+1") == "voxel (refinement 1)"
+
+
+def test_the_models_second_draw_only_after_a_cheaper_first():
+    # a first draw under LEARNED_RETRY_STEPS gets a second one right after it, in auto and learned
+    assert learned_retry(1) == LEARNED_RETRY_STEPS == 4 and learned_retry(3) == 4
+    assert learned_retry(4) is None and learned_retry(32) is None and learned_retry("stride4") is None
+    assert source_names("auto", retry=True) == ["learned", "learned+1", "classical"] + VOXELS
+    assert source_names("learned", retry=True) == ["learned", "learned+1"]
+    assert source_names("oracle", fallback=True, retry=True)[:2] == ["oracle", "classical"]
+    assert source_names("classical", retry=True) == ["classical"] + VOXELS
+    assert source_label("learned+1") == "learned (second draw, 4 steps)"
+    # the second draw is a learned attempt: any of its errors hands the part on, like the first's
+    assert leaves_source("learned+1", RuntimeError("CUDA error")) and not leaves_source("classical", KeyError("bug"))
+    assert not leaves_source("learned+1", PartError("p.stl", "not closed"))
+    attempt, calls = _scripted({"learned": _at(PolycubeError("genus 0, part 2"), "extract"),
+                                "learned+1": {"valid": True, "sj_min": 0.4}, "classical": {"valid": True}})
+    out = run_chain(source_names("auto", retry=True), attempt, min_sj=0.2)
+    assert calls == ["learned", "learned+1"] and out.chosen.source == "learned+1"
+    assert out.fallback_reason.startswith("learned polycube rejected at extract")
 
 
 def test_first_valid_mesh_is_kept_and_later_sources_are_not_tried():
