@@ -43,7 +43,7 @@ from .atomic import write_json, write_text
 from .data import HexMesh, Part, Polycube, PolycubeCloud, SurfaceSample
 from .errors import PolycubeError
 from .pipeline import OracleSource, PartResult, PipelineConfig
-from .policy import refinement
+from .policy import refinement, source_config
 
 #: part files the library reads (``polycubenet.io.load_part``)
 CAD_SUFFIXES = (".step", ".stp", ".iges", ".igs")
@@ -194,13 +194,14 @@ def stage_params(config: PipelineConfig, *, polycube: str = "oracle", polycube_e
                  load_kw: dict | None = None, formats=("vtu",), out_dir: str | None = None) -> dict:
     """The parameters each stage's key depends on (only those: changing the hex size
     re-runs partition and later, never sampling or generation)."""
+    hexes = source_config(polycube, config)  # a denser source partitions into more hexes
     return {
         "load_sample": {"n_sample": config.n_sample, "seed": config.seed, "load": dict(load_kw or {})},
         "polycube": {"source": polycube, "seed": config.seed, "extra": polycube_extra,
                      "n_points": config.n_learned if refinement(polycube)[0] == "learned" else config.n_polycube},
         "extract": {"extract": config.extract},
         "register": {"n_register": config.n_register, "seed": config.seed},
-        "pullback": {"target_hexes": config.target_hexes, "target_size": config.target_size, "pullback": config.pullback},
+        "pullback": {"target_hexes": hexes.target_hexes, "target_size": hexes.target_size, "pullback": config.pullback},
         "export": {"formats": sorted(formats), "out": out_dir},
     }
 
@@ -302,7 +303,8 @@ def classical_available() -> bool:
 def make_source(kind: str, part_path: str | os.PathLike, transform, *, checkpoint: str | os.PathLike | None = None,
                 device: str | None = None):
     """A per-part polycube source by name: ``oracle``, ``classical``, ``voxel`` or ``voxel+K``
-    (the voxel polycube ``K`` refinement steps finer, :func:`polycubenet.policy.source_names`),
+    (the voxel polycube ``K`` refinement steps finer, :func:`polycubenet.policy.source_names`;
+    ``voxel+K*`` is the same polycube, partitioned denser),
     or ``learned+1``: the model of ``checkpoint`` (on ``device``) drawn again at
     :data:`polycubenet.policy.LEARNED_RETRY_STEPS` DDIM steps, one part at a time.
 
@@ -479,20 +481,17 @@ def register(extracted: str | os.PathLike, loaded: str | os.PathLike, dest: str 
 
 def partition_pullback(extracted: str | os.PathLike, corr: str | os.PathLike, loaded: str | os.PathLike,
                        dest: str | os.PathLike, config: PipelineConfig) -> Path:
-    """Partition the polycube into hexes and pull them back onto the part (canonical frame)."""
-    from .hexmesh import partition
+    """Partition the polycube into hexes (at ``config``'s size: the source's own,
+    :func:`polycubenet.policy.source_config`) and pull them back onto the part (canonical frame)."""
     from .pullback import pull_back
     from .registration import Correspondence
 
-    from .pipeline import own_diagonal
+    from .pipeline import own_diagonal, partition_polycube
 
     _, _, poly, _ = read_extracted(extracted)
     part, _, T, _ = read_loaded(loaded)
     diagonal = own_diagonal(part.vertices, T)
-    if config.target_size is not None:
-        mesh_pc = partition(poly, target_size=config.target_size)
-    else:
-        mesh_pc = partition(poly, target_hexes=config.target_hexes)
+    mesh_pc = partition_polycube(poly, config)
     arrays, _ = _load_arrays(corr)
     if all(k in arrays for k in _EXACT_MAP):  # classical: the same pullback as pipeline.mesh_surface
         from .pipeline import _pull_back_classical

@@ -60,7 +60,7 @@ from .frame import Transform, canonicalize
 from .hexmesh import partition
 from .polycube import polycube_surface
 from .policy import MODES as POLYCUBE_MODES
-from .policy import Attempt, error_reason, invalid_mesh_reason, mesh_rank, refinement, run_chain, source_label, source_names  # noqa: F401
+from .policy import Attempt, error_reason, invalid_mesh_reason, mesh_rank, refinement, run_chain, source_config, source_label, source_names  # noqa: F401
 from .pullback import PullbackConfig, pull_back, worth_retry
 from .quality import QualityReport, quality_report
 from .registration import align
@@ -297,10 +297,7 @@ def mesh_surface(
                     sub = rng.choice(len(P), size=min(config.n_register, len(P)), replace=False)
                     corr = align(sample, P[sub], N[sub])
             with clock("partition"):
-                if config.target_size is not None:
-                    mesh_pc = partition(poly, target_size=config.target_size)
-                else:
-                    mesh_pc = partition(poly, target_hexes=config.target_hexes)
+                mesh_pc = partition_polycube(poly, source_config(label, config))
             with clock("pullback"):
                 if hasattr(cloud, "correspondence"):
                     mesh_c = _pull_back_classical(mesh_pc, corr, Vc, F, config, own_diagonal(Vc, T))
@@ -354,6 +351,13 @@ def _polycube_stages(source, sample, Vc, F, genus, config, name, clock, res):
         poly = cloud_polycube(cloud, P, N, genus, config, name)
     res.polycube = poly
     return cloud, P, N, poly
+
+
+def partition_polycube(poly: Polycube, config: PipelineConfig):
+    """The polycube's regular hex partition at ``config``'s hex size or count (both drivers call this)."""
+    if config.target_size is not None:
+        return partition(poly, target_size=config.target_size)
+    return partition(poly, target_hexes=config.target_hexes)
 
 
 def cloud_polycube(cloud: PolycubeCloud, P: np.ndarray, N: np.ndarray, genus: int | None, config: PipelineConfig,

@@ -22,7 +22,11 @@ The rules:
   than the resolution the voxel polycube chose, :func:`polycubenet.voxel.voxel_polycube`),
   tried only while the one before gave a mesh that does not end the chain: a coarse voxel
   solid cuts thin features and curved faces (HexGen fertility 1.22 % off at 30 cells,
-  0.84 % at 38; rockerarm not valid at 28 cells, min SJ 0.302 at 36).
+  0.84 % at 38; rockerarm not valid at 28 cells, min SJ 0.302 at 36).  The last source,
+  ``voxel+3*``, partitions the finest of them into :data:`DENSER_HEXES` times the hexes
+  (:func:`source_config`), tried like a refinement: whether a fine voxel polycube's pull-back
+  untangles depends on its partition (seed-3 threaded rod, refinement 3: not valid at the
+  default 5000 hexes, valid and 0.82 % off at 6000 to 10 000, not valid at 15 000).
 * **Leaving a source** (:func:`leaves_source`): a rejected polycube
   (:class:`~polycubenet.errors.PolycubeError`, at any stage) always hands the part to
   the next source; for the learned source, so does *any* other error of its attempt
@@ -63,6 +67,8 @@ MODES = ("auto", "learned", "classical", "voxel")
 VOXEL_REFINEMENTS = 3
 #: DDIM steps of the learned source's second draw (``learned+1``)
 LEARNED_RETRY_STEPS = 4
+#: the very last source, ``voxel+3*``: the finest voxel polycube partitioned into this many times the hexes
+DENSER_HEXES = 1.5
 
 
 def learned_retry(steps) -> int | None:
@@ -75,19 +81,36 @@ def learned_retry(steps) -> int | None:
 
 def refinement(source: str) -> tuple[str, int]:
     """``(base source, refinement step)`` of a source name: ``"voxel+2"`` -> ``("voxel", 2)``,
-    ``"classical"`` -> ``("classical", 0)``."""
-    base, plus, k = source.partition("+")
+    ``"voxel+3*"`` -> ``("voxel", 3)``, ``"classical"`` -> ``("classical", 0)``."""
+    base, plus, k = source.removesuffix("*").partition("+")
     if plus and k.isdigit() and int(k) > 0:
         return base, int(k)
     return source, 0
 
 
+def denser(source: str) -> bool:
+    """Whether ``source`` is partitioned into :data:`DENSER_HEXES` times the hexes (``voxel+3*``)."""
+    return source.endswith("*")
+
+
+def source_config(source: str, config):
+    """The pipeline config ``source``'s partition uses: ``config`` itself, or for a denser source
+    :data:`DENSER_HEXES` times its hexes (``target_hexes``, or ``target_size`` over the cube root)."""
+    if not denser(source):
+        return config
+    if config.target_size is not None:
+        return dataclasses.replace(config, target_size=config.target_size / DENSER_HEXES ** (1 / 3))
+    return dataclasses.replace(config, target_hexes=int(round(config.target_hexes * DENSER_HEXES)))
+
+
 def source_label(source: str) -> str:
-    """How reasons name a source: ``voxel+2`` is "voxel (refinement 2)", ``learned+1``
-    "learned (second draw, 4 steps)"."""
+    """How reasons name a source: ``voxel+2`` is "voxel (refinement 2)", ``voxel+3*``
+    "voxel (refinement 3, 1.5x hexes)", ``learned+1`` "learned (second draw, 4 steps)"."""
     base, k = refinement(source)
     if base == "learned" and k:
         return f"learned (second draw, {LEARNED_RETRY_STEPS} steps)"
+    if denser(source):
+        return f"{base} (refinement {k}, {DENSER_HEXES:g}x hexes)"
     return f"{base} (refinement {k})" if k else source
 
 
@@ -99,7 +122,7 @@ def source_names(mode: str, fallback: bool = False, classical: bool = True, retr
     polycube alone in the classical chain; ``retry`` (the first draw's steps have a
     :func:`learned_retry`) adds the model's second draw ``learned+1`` after ``learned``.
     """
-    voxel = ["voxel"] + [f"voxel+{k}" for k in range(1, VOXEL_REFINEMENTS + 1)]
+    voxel = ["voxel"] + [f"voxel+{k}" for k in range(1, VOXEL_REFINEMENTS + 1)] + [f"voxel+{VOXEL_REFINEMENTS}*"]
     if mode == "voxel":
         return voxel
     rest = (["classical"] if classical else []) + voxel

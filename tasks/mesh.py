@@ -148,7 +148,7 @@ def _chain(state, name, path, loaded, sources, keys, paths, config, formats, out
     """The body of :func:`mesh_chain` (``state["stage"]`` follows the stage reached): each source's
     stages as tasks, the choice between sources by :func:`polycubenet.policy.run_chain`."""
     from polycubenet.errors import PolycubeError
-    from polycubenet.policy import Attempt, run_chain, source_label
+    from polycubenet.policy import Attempt, run_chain, source_config, source_label
 
     from .common import FINAL_ERRORS
 
@@ -184,7 +184,7 @@ def _chain(state, name, path, loaded, sources, keys, paths, config, formats, out
         run("register", register, src, tracker, extracted=att["extract"]["path"], loaded=loaded, dest=p["register"],
             config=config)
         run("pullback", partition_pullback, src, tracker, extracted=att["extract"]["path"],
-            corr=att["register"]["path"], loaded=loaded, dest=p["pullback"], config=config)
+            corr=att["register"]["path"], loaded=loaded, dest=p["pullback"], config=source_config(src, config))
         return Attempt(src, library.pullback_quality(att["pullback"]["path"]), payload=att,
                        seconds=dict(tracker.seconds), label=source_label(src))
 

@@ -185,9 +185,16 @@ def test_voxel_source_by_name_and_its_key(monkeypatch, tmp_path):
     before = _source_keys("voxel", tmp_path / "p.stl")
     # a refinement has its own keys (its own cached stages)
     assert _source_keys("voxel+1", tmp_path / "p.stl")["polycube"] != before["polycube"]
+    # the denser last source: the same refinement, its own keys, and its partition's hexes in the pullback key
+    denser = library.make_source("voxel+3*", tmp_path / "p.stl", None)
+    assert isinstance(denser, voxel.VoxelSource) and denser.refine == 3
+    params = library.stage_params(PipelineConfig(**SMALL), polycube="voxel+3*")
+    assert params["pullback"]["target_hexes"] == round(1.5 * SMALL["target_hexes"])
+    assert library.stage_params(PipelineConfig(**SMALL), polycube="voxel+3")["pullback"]["target_hexes"] == SMALL["target_hexes"]
+    assert _source_keys("voxel+3*", tmp_path / "p.stl")["polycube"] != _source_keys("voxel+3", tmp_path / "p.stl")["polycube"]
     monkeypatch.setattr(voxel, "VERSION", voxel.VERSION + "-next")
     assert _source_keys("voxel", tmp_path / "p.stl")["polycube"] != before["polycube"]
-    vox = ["voxel", "voxel+1", "voxel+2", "voxel+3"]
+    vox = ["voxel", "voxel+1", "voxel+2", "voxel+3", "voxel+3*"]
     assert source_names("classical", False) == ["classical"] + vox
     assert source_names("learned", True) == ["learned", "classical"] + vox == source_names("auto")
     assert source_names("oracle", False) == ["oracle"] and source_names("voxel", True) == vox

@@ -34,7 +34,7 @@ def _at(exc, stage):
     return exc
 
 
-VOXELS = ["voxel", "voxel+1", "voxel+2", "voxel+3"]
+VOXELS = ["voxel", "voxel+1", "voxel+2", "voxel+3", "voxel+3*"]
 
 
 def test_source_order():
@@ -44,6 +44,35 @@ def test_source_order():
     assert source_names("classical", classical=False) == VOXELS
     assert refinement("voxel+2") == ("voxel", 2) and refinement("voxel") == ("voxel", 0)
     assert refinement("classical") == ("classical", 0) and source_label("voxel+1") == "voxel (refinement 1)"
+    assert refinement("voxel+3*") == ("voxel", 3) and source_label("voxel+3*") == "voxel (refinement 3, 1.5x hexes)"
+
+
+def test_the_last_source_partitions_the_finest_voxel_polycube_denser():
+    import dataclasses
+
+    from polycubenet.pipeline import PipelineConfig
+    from polycubenet.policy import DENSER_HEXES, source_config
+
+    cfg = PipelineConfig(target_hexes=5000)
+    assert source_config("voxel+3", cfg) is cfg and source_config("classical", cfg) is cfg
+    assert source_config("voxel+3*", cfg).target_hexes == 7500 == round(5000 * DENSER_HEXES)
+    sized = dataclasses.replace(cfg, target_size=0.03)
+    assert source_config("voxel+3*", sized).target_size == pytest.approx(0.03 / 1.5 ** (1 / 3))
+    # tried like a refinement: only after the finest voxel polycube gave a mesh that did not end the chain
+    attempt, calls = _scripted({"voxel": {"valid": True, "sj_min": 0.3, "hausdorff": 0.0128},
+                                "voxel+1": {"valid": True, "sj_min": 0.3, "hausdorff": 0.0116},
+                                "voxel+2": {"valid": True, "sj_min": 0.3, "hausdorff": 0.0117},
+                                "voxel+3": {"valid": False, "sj_min": -0.178},
+                                "voxel+3*": {"valid": True, "sj_min": 0.3, "hausdorff": 0.0082}})
+    out = run_chain(VOXELS, attempt, min_sj=0.2)
+    assert calls == VOXELS and out.chosen.source == "voxel+3*"
+    assert "voxel (refinement 3) polycube's hex mesh is not valid" in out.fallback_reason
+    attempt, calls = _scripted({"voxel": {"valid": True, "sj_min": 0.3, "hausdorff": 0.0128},
+                                "voxel+1": {"valid": True, "sj_min": 0.31, "hausdorff": 0.0116},
+                                "voxel+2": {"valid": True, "sj_min": 0.3, "hausdorff": 0.0117},
+                                "voxel+3": _at(PolycubeError("no finer voxel polycube"), "polycube")})
+    out = run_chain(VOXELS, attempt, min_sj=0.2)
+    assert calls == VOXELS[:4] and out.chosen.source == "voxel+1"
 
 
 def test_the_models_second_draw_only_after_a_cheaper_first():
@@ -150,7 +179,7 @@ def test_finer_voxel_polycubes_are_tried_while_the_mesh_is_off_the_part_or_under
     # none good: every refinement made, the best kept (valid and faithful first, then min SJ)
     attempt, calls = _scripted({"voxel": {"valid": False, "sj_min": -0.5}, "voxel+1": {"valid": True, "sj_min": 0.15},
                                 "voxel+2": {"valid": True, "sj_min": 0.3, "deviation": 0.02},
-                                "voxel+3": {"valid": True, "sj_min": 0.1}})
+                                "voxel+3": {"valid": True, "sj_min": 0.1}, "voxel+3*": {"valid": True, "sj_min": 0.12}})
     out = run_chain(VOXELS, attempt, min_sj=0.2)
     assert calls == VOXELS and out.chosen.source == "voxel+1"
 
