@@ -285,3 +285,40 @@ def test_weight_blocks_factorize_once_per_block_and_flatten_alike(monkeypatch, t
     # the same labelling flattens to nearly the same surface with the same number of folds
     assert abs(out[5][1]["flipped"] - out[1][1]["flipped"]) <= max(2, out[1][1]["flipped"] // 10)
     assert np.abs(out[5][2] - out[1][2]).max() < 0.05
+
+
+def test_a_compactness_retry_with_the_same_labels_is_not_flattened_again(monkeypatch):
+    """Only the labelling depends on the compactness: a retry whose labels equal an earlier attempt's
+    reuses that flattening (same flips, recorded as ``same_labels_as``) instead of deforming again,
+    and the result is the one a full run gives."""
+    import polycubenet.classical as C
+
+    V, F = _canon(trimesh.creation.icosphere(subdivisions=2))
+    real_label, real_deform = C.label_faces, C.deform_to_polycube
+    first = {}
+
+    def fixed_labels(V, F, config=ClassicalConfig(), seed=0):  # every compactness gives the first labelling
+        if "labels" not in first:
+            first["labels"] = real_label(V, F, config, seed=seed)
+        return first["labels"][0].copy(), dict(first["labels"][1])
+
+    deforms = []
+
+    def folding_deform(*a, **k):  # report folds, so that every compactness retry is tried
+        deforms.append(1)
+        Xp, meta = real_deform(*a, **k)
+        return Xp, {**meta, "flipped": 5}
+
+    monkeypatch.setattr(C, "label_faces", fixed_labels)
+    monkeypatch.setattr(C, "deform_to_polycube", folding_deform)
+    cfg = ClassicalConfig(fix_rounds=0, retries=2)
+    (Vp, Vs, Fs, ls, info), attempts = C._flatten(V, F, cfg, seed=0)
+    assert len(attempts) == 3 and len(deforms) == 1
+    assert [a.get("same_labels_as") for a in attempts] == [None, 0, 0]
+    assert [a["compactness"] for a in attempts] == [1.5, 3.0, 6.0]
+    assert all(a["flipped"] == attempts[0]["flipped"] for a in attempts)
+    # the flattening kept is the first labelling's, as a single attempt gives it
+    monkeypatch.setattr(C, "label_faces", real_label)
+    monkeypatch.setattr(C, "deform_to_polycube", real_deform)
+    (Vp0, *_), _ = C._flatten(V, F, ClassicalConfig(fix_rounds=0, retries=0), seed=0)
+    np.testing.assert_array_equal(Vp, Vp0)
