@@ -14,7 +14,8 @@ The rules:
   :data:`LEARNED_RETRY_STEPS` DDIM steps (``learned+1``, :func:`learned_retry`) when its first
   draw used fewer (the checkpoint's default: 1 step on a CPU), tried only when the first
   is left: one step is best on synthetic pairs, more steps on real parts whose slanted or round
-  features the one-step cloud blurs (never-seen mixed parts: 6 -> 12 / 16 accepted);
+  features the one-step cloud blurs (never-seen parts meshed through it with the session-9 file:
+  blocks 9 -> 12, mixed 5 -> 7 and 5 -> 5 of 16; ``benchmarks/unseen_parts.py --mesh``);
   ``classical`` = surface flattening, then the voxel polycube (its last resort, which
   exists for every closed part); ``voxel`` alone; ``learned`` / ``oracle`` alone, or
   followed by the classical chain with ``fallback``.  The voxel polycube is followed by
