@@ -43,7 +43,7 @@ from .atomic import write_json, write_text
 from .data import HexMesh, Part, Polycube, PolycubeCloud, SurfaceSample
 from .errors import PolycubeError
 from .pipeline import OracleSource, PartResult, PipelineConfig
-from .policy import refinement, source_config
+from .policy import draw_steps, refinement, source_config
 
 #: part files the library reads (``polycubenet.io.load_part``)
 CAD_SUFFIXES = (".step", ".stp", ".iges", ".igs")
@@ -326,9 +326,8 @@ def make_source(kind: str, part_path: str | os.PathLike, transform, *, checkpoin
         return VoxelSource(refine=refine)
     if kind == "learned+1":
         from .inference import ModelSource
-        from .policy import LEARNED_RETRY_STEPS
 
-        return ModelSource(checkpoint, steps=LEARNED_RETRY_STEPS, device=device)
+        return ModelSource(checkpoint, steps=draw_steps(kind, None), device=device)
     raise ValueError(f"unknown per-part polycube source {kind!r}; expected 'oracle', 'classical', 'voxel', 'voxel+K' "
                      "or 'learned+1'")
 
@@ -346,9 +345,8 @@ def source_extra(kind: str, part_path: str | os.PathLike, checkpoint: str | os.P
         return {"sidecar": file_hash(sc) if sc.is_file() else None}
     if refinement(kind)[0] == "learned":
         from .inference import resolve_steps
-        from .policy import LEARNED_RETRY_STEPS
 
-        dev_type, used = resolve_steps(steps if kind == "learned" else LEARNED_RETRY_STEPS, device, checkpoint)
+        dev_type, used = resolve_steps(draw_steps(kind, steps), device, checkpoint)
         return {"checkpoint": file_hash(checkpoint) if checkpoint and Path(checkpoint).is_file() else str(checkpoint),
                 "steps": used, "device": dev_type}
     if kind == "classical" and classical_available():

@@ -80,6 +80,12 @@ def learned_retry(steps) -> int | None:
     return None
 
 
+def draw_steps(source: str, steps):
+    """DDIM steps a learned source draws at: ``steps`` (the run's setting) for ``learned``,
+    :data:`LEARNED_RETRY_STEPS` for its second draw ``learned+1``."""
+    return LEARNED_RETRY_STEPS if source == "learned+1" else steps
+
+
 def refinement(source: str) -> tuple[str, int]:
     """``(base source, refinement step)`` of a source name: ``"voxel+2"`` -> ``("voxel", 2)``,
     ``"voxel+3*"`` -> ``("voxel", 3)``, ``"classical"`` -> ``("classical", 0)``."""
