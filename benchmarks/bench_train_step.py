@@ -1,7 +1,7 @@
 """Where a training step's time goes, per batch size: building the batch, forward + backward,
 optimizer, EMA (the shipped checkpoint's model and recipe).
 
-    python benchmarks/bench_train_step.py --data SHARDS [--device cuda:0] [--batches 12 128 512] \\
+    python benchmarks/bench_train_step.py --data SHARDS [--device cuda:0] [--batches 12 128 512] [--builders numpy device] \\
         [--steps 20] [--json benchmarks/results/bench_train_step.json]
 
 Session 7 trained on a lent H100 at ~5 steps/s of batch 128 with the GPU about 1 % busy: run this first
@@ -26,7 +26,7 @@ sys.path.insert(0, str(ROOT))
 
 from polycubenet.model import PolycubeNet  # noqa: E402
 from polycubenet.model.config import ModelConfig  # noqa: E402
-from polycubenet.train import PairData, TrainConfig, _to_net, diffusion_of, ema_update  # noqa: E402
+from polycubenet.train import DevicePairs, PairData, TrainConfig, _to_net, diffusion_of, ema_update  # noqa: E402
 
 
 def _sync(dev: torch.device) -> None:
@@ -34,8 +34,10 @@ def _sync(dev: torch.device) -> None:
         torch.cuda.synchronize(dev)
 
 
-def measure(data: PairData, mcfg: ModelConfig, cfg: TrainConfig, dev: torch.device, steps: int) -> dict:
-    """Mean seconds per step of each phase over ``steps`` steps (after two warm-up steps)."""
+def measure(data: PairData, mcfg: ModelConfig, cfg: TrainConfig, dev: torch.device, steps: int,
+            on_device: DevicePairs | None = None) -> dict:
+    """Mean seconds per step of each phase over ``steps`` steps (after two warm-up steps); batches
+    drawn by ``on_device`` (the training's builder on a GPU) when given, else by numpy."""
     model = PolycubeNet(mcfg).to(dev)
     ema = PolycubeNet(mcfg).to(dev).eval()
     opt = torch.optim.AdamW(model.parameters(), lr=1e-5)
@@ -46,7 +48,11 @@ def measure(data: PairData, mcfg: ModelConfig, cfg: TrainConfig, dev: torch.devi
     for i in range(steps + 2):
         t0 = time.perf_counter()
         idx = rng.integers(0, len(data), size=cfg.batch)
-        x0, cond, anchor = _to_net(data.batch(idx, cfg.points, rng, cfg, anchors=mcfg.anchor_dim), mcfg, dev)
+        if on_device is not None:
+            gen = torch.Generator(device=dev).manual_seed(int(rng.integers(2**62)))
+            x0, cond, anchor = _to_net(on_device.batch(idx, cfg.points, gen, cfg), mcfg, dev)
+        else:
+            x0, cond, anchor = _to_net(data.batch(idx, cfg.points, rng, cfg, anchors=mcfg.anchor_dim), mcfg, dev)
         _sync(dev)
         t1 = time.perf_counter()
         loss, _ = diffusion.training_loss(model, x0, cond, loss=cfg.loss, autocast=autocast, anchor=anchor,
@@ -77,6 +83,8 @@ def main(argv=None) -> int:
     ap.add_argument("--batches", type=int, nargs="+", default=[12, 128])
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--pairs", type=int, default=1024, help="pairs loaded (the first shards)")
+    ap.add_argument("--builders", nargs="+", default=["numpy"], choices=["numpy", "device"],
+                    help="who draws the batches: numpy on one core, or DevicePairs on --device (the GPU training's)")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/bench_train_step.json"))
     args = ap.parse_args(argv)
@@ -89,17 +97,18 @@ def main(argv=None) -> int:
     data = PairData(args.data, limit=args.pairs)
     _ = data.anchor_normals if mcfg.anchor_dim == 6 else None  # computed once, outside the timing
     rows = []
-    for b in args.batches:
+    on_device = DevicePairs(data, dev, mcfg.anchor_dim) if "device" in args.builders else None
+    for builder, b in [(w, b) for w in args.builders for b in args.batches]:
         cfg = TrainConfig(preset=tc.get("preset", "cpu"), batch=b, points=int(tc.get("points", 512)),
                           prediction=d.get("prediction", "eps"), schedule=d.get("schedule", "cosine"),
                           pairing=d.get("pairing", "random"), t_bias=float(tc.get("t_bias", 1.0)))
-        t = measure(data, mcfg, cfg, dev, args.steps)
-        rows.append({"batch": b, **{k: round(v, 5) for k, v in t.items()}, "pairs_per_s": round(b / t["step"], 1)})
+        t = measure(data, mcfg, cfg, dev, args.steps, on_device if builder == "device" else None)
+        rows.append({"builder": builder, "batch": b, **{k: round(v, 5) for k, v in t.items()}, "pairs_per_s": round(b / t["step"], 1)})
     base = rows[0]["pairs_per_s"]
     print(f"device {dev}, {len(data)} pairs, {args.steps} timed steps per row (ms per step)")
-    print(f"{'batch':>6} {'build':>9} {'fwd+bwd':>8} {'optim':>7} {'ema':>6} {'step':>7} {'pairs/s':>8} {'ratio':>6}")
+    print(f"{'builder':>8} {'batch':>6} {'build':>9} {'fwd+bwd':>8} {'optim':>7} {'ema':>6} {'step':>7} {'pairs/s':>8} {'ratio':>6}")
     for r in rows:
-        print(f"{r['batch']:>6} {1e3 * r['build']:>9.1f} {1e3 * r['forward_backward']:>8.1f} {1e3 * r['optimizer']:>7.1f} "
+        print(f"{r['builder']:>8} {r['batch']:>6} {1e3 * r['build']:>9.1f} {1e3 * r['forward_backward']:>8.1f} {1e3 * r['optimizer']:>7.1f} "
               f"{1e3 * r['ema']:>6.1f} {1e3 * r['step']:>7.1f} {r['pairs_per_s']:>8.1f} {r['pairs_per_s'] / base:>6.2f}")
     out = {"device": str(dev), "pairs": len(data), "steps": args.steps, "baseline_batch": rows[0]["batch"], "rows": rows}
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)

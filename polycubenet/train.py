@@ -177,6 +177,60 @@ class PairData:
         return out + (torch.from_numpy(a.astype(np.float32)),) if anchors else out
 
 
+class DevicePairs:
+    """The arrays of a :class:`PairData` on the training device, with :meth:`PairData.batch`'s draw
+    (subsampling, anisotropic scaling, re-normalisation, jitter) done there in torch.
+
+    On a GPU the numpy batch builder on one core bounds the step (session 7: ~5 steps/s of 128 with
+    the GPU ~1 % busy); here a batch is a few gathers on the device.  The draw has the same law as
+    :meth:`PairData.batch`, not the same numbers (torch's generator, float32 arithmetic)."""
+
+    def __init__(self, data: PairData, dev: torch.device, anchors: int = 0):
+        def put(a: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to(dev)
+
+        self.cond, self.target_points = put(data.cond), put(data.target_points)
+        self.target_normals, self.target_on_shape = put(data.target_normals), put(data.target_on_shape)
+        self.anchor_normals = put(data.anchor_normals) if anchors == 6 else None
+        self.anchors, self.dev = anchors, dev
+
+    def __len__(self) -> int:
+        return int(self.cond.shape[0])
+
+    def batch(self, idx: np.ndarray, points: int, gen: torch.Generator, cfg: TrainConfig | None = None):
+        """``(x0, cond[, anchor])`` on the device for pairs ``idx``, as :meth:`PairData.batch` returns them."""
+        i = torch.as_tensor(np.asarray(idx), device=self.dev, dtype=torch.long)
+        B, N, M = len(i), self.cond.shape[1], self.target_points.shape[1]
+
+        def pick(arr: torch.Tensor, sub: torch.Tensor) -> torch.Tensor:
+            return torch.gather(arr[i], 1, sub[..., None].expand(-1, -1, arr.shape[-1]))
+
+        ci, ti = self._subsample(B, N, points, gen), self._subsample(B, M, points, gen)
+        g, p = pick(self.cond, ci), pick(self.target_points, ti)
+        nrm, a = pick(self.target_normals, ti), pick(self.target_on_shape, ti)
+        an = pick(self.anchor_normals, ti) if self.anchor_normals is not None else None
+        if cfg is not None and cfg.scale_aug > 0:
+            s = 1 - cfg.scale_aug + 2 * cfg.scale_aug * torch.rand((B, 1, 3), generator=gen, device=self.dev)
+            g, p, a = g * s, p * s, a * s
+            if an is not None:  # a normal transforms with the inverse scale
+                an = an / s
+                an = an / an.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+            full = self.cond[i] * s  # back to diagonal 1 on the full condition cloud
+            diag = (full.amax(dim=1) - full.amin(dim=1)).norm(dim=-1)[:, None, None]
+            g, p, a = g / diag, p / diag, a / diag
+        if cfg is not None and cfg.jitter > 0:
+            g = g + cfg.jitter * torch.randn(g.shape, generator=gen, device=self.dev)
+        out = (torch.cat([p, nrm], dim=-1), g)
+        if an is not None:
+            a = torch.cat([a, an], dim=-1)
+        return out + (a,) if self.anchors else out
+
+    def _subsample(self, B: int, N: int, points: int, gen: torch.Generator) -> torch.Tensor:
+        if points > N:
+            return torch.randint(0, N, (B, points), generator=gen, device=self.dev)
+        return torch.rand((B, N), generator=gen, device=self.dev).topk(points, dim=1).indices
+
+
 def _subsample(rng: np.random.Generator, B: int, N: int, points: int) -> np.ndarray:
     """``(B, points)`` indices into ``N`` points: distinct within a row when ``points <= N``."""
     if points > N:
@@ -339,6 +393,9 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
                              f"use a new --out folder (with --init {ckpt} to start from it)")
     shard_cache: dict = {}  # each shard's arrays, loaded once however often the folder is re-read
     data = PairData(data_dir, max_genus=cfg.max_genus, cache=shard_cache)
+    # on a GPU the batches are drawn there (DevicePairs); on a CPU by PairData.batch, the drawn numbers
+    # reproducible across a resume
+    on_device = DevicePairs(data, dev, mcfg.anchor_dim) if dev.type == "cuda" else None
     heldout = None
     if eval_dir is not None and rank == 0:
         ev = PairData(eval_dir, limit=cfg.eval_pairs)
@@ -369,11 +426,16 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
     while step < cfg.steps:
         if cfg.reload_every and step % cfg.reload_every == 0 and len(list_shards(data_dir)) != data.shards:
             data = PairData(data_dir, max_genus=cfg.max_genus, cache=shard_cache)
+            on_device = DevicePairs(data, dev, mcfg.anchor_dim) if on_device is not None else None
             if rank == 0:
                 print(f"[train] step {step}: {len(data)} pairs from {data.shards} shards", flush=True)
         rng = np.random.default_rng([cfg.seed, step, rank])
         idx = rng.integers(0, len(data), size=per_rank)
-        x0, cond, anchor = _to_net(data.batch(idx, cfg.points, rng, cfg, anchors=mcfg.anchor_dim), mcfg, dev)
+        if on_device is not None:
+            bgen = torch.Generator(device=dev).manual_seed(int(rng.integers(2**62)))
+            x0, cond, anchor = _to_net(on_device.batch(idx, cfg.points, bgen, cfg), mcfg, dev)
+        else:
+            x0, cond, anchor = _to_net(data.batch(idx, cfg.points, rng, cfg, anchors=mcfg.anchor_dim), mcfg, dev)
         for group in opt.param_groups:
             group["lr"] = lr_at(step, cfg)
         gen = torch.Generator(device=dev).manual_seed(int(rng.integers(2**62)))

@@ -25,7 +25,12 @@ D=${D:-/root/pc}
 PY=${PY:-python3}
 BATCH=${BATCH:-128}
 LR=${LR:-3e-4}
-CKPT=polycubenet/checkpoints/polycubenet-cpu.pt
+MIN_LR_RATIO=${MIN_LR_RATIO:-0.033}
+SEEDS=${SEEDS:-8 9}  # the generator seeds of the two fresh sets (plain, --cad-features): new ones each lease
+COUNT=${COUNT:-16384}  # pairs per set (the training uses what exists so far)
+CKPT=polycubenet/checkpoints/polycubenet-cpu.pt  # its recipe is the run's
+INIT=${INIT:-$CKPT}  # the weights the run starts from, e.g. the committed continue file
+EVAL=${EVAL:-}  # a held-out shard folder carried along (its loss is logged)
 mkdir -p "$D/mix" "$D/run"
 case "${1:?start|export|wait}" in
 start)
@@ -34,17 +39,18 @@ start)
   # the device image has no open3d: Poisson-disk sampling falls back to polycubenet.sampling.eliminate_samples
   # (the same points, ~5x slower; session 7 ran before it existed, with --sampler uniform)
   SYNTH="$PY -m polycubenet.synth --n-cond 2048 --n-target 2048 --no-progress ${SAMPLER:+--sampler $SAMPLER}"
-  [ -n "${NOGEN:-}" ] || setsid nohup $SYNTH --out "$D/g8" --count 16384 --seed 8 --workers 7 > "$D/g8.out" 2>&1 &
-  [ -n "${NOGEN:-}" ] || setsid nohup $SYNTH --out "$D/g9" --count 16384 --seed 9 --workers 7 --cad-features > "$D/g9.out" 2>&1 &
-  [ -n "${NOGEN:-}" ] || setsid nohup bash -c "while true; do for s in 8 9; do for f in $D/g\$s/shard-*.npz; do [ -e \$f ] || continue;
+  read -r S1 S2 <<< "$SEEDS"
+  [ -n "${NOGEN:-}" ] || setsid nohup $SYNTH --out "$D/g$S1" --count "$COUNT" --seed "$S1" --workers 7 > "$D/g$S1.out" 2>&1 &
+  [ -n "${NOGEN:-}" ] || setsid nohup $SYNTH --out "$D/g$S2" --count "$COUNT" --seed "$S2" --workers 7 --cad-features > "$D/g$S2.out" 2>&1 &
+  [ -n "${NOGEN:-}" ] || setsid nohup bash -c "while true; do for s in $S1 $S2; do for f in $D/g\$s/shard-*.npz; do [ -e \$f ] || continue;
       b=\$(basename \$f); [ -e $D/mix/shard-\$s\${b#shard-} ] || ln -s \$f $D/mix/shard-\$s\${b#shard-}; done; done;
       sleep 5; done" > /dev/null 2>&1 &
   while [ "$(ls "$D/mix" | wc -l)" -lt 12 ]; do sleep 5; done
   RECIPE=$("$PY" -c "import sys; from polycubenet.train import recipe_flags; print(' '.join(recipe_flags(sys.argv[1])))" "$CKPT")
-  echo "recipe: $RECIPE --batch $BATCH --lr $LR"
-  $PY -m polycubenet.train --data "$D/mix" --out "$D/run" --init "$CKPT" $RECIPE --batch "$BATCH" \
-      --lr "$LR" --min-lr-ratio 0.033 --warmup 300 --steps 100000 --fit-steps True --device cuda:0 --seed 8 \
-      --reload-every 200 --ckpt-every 250 --log-every 100 --no-progress --max-minutes "$MINUTES"
+  echo "recipe: $RECIPE --batch $BATCH --lr $LR --init $INIT"
+  $PY -m polycubenet.train --data "$D/mix" --out "$D/run" --init "$INIT" $RECIPE --batch "$BATCH" ${EVAL:+--eval-data $EVAL} \
+      --lr "$LR" --min-lr-ratio "$MIN_LR_RATIO" --warmup 300 --steps 100000 --fit-steps True --device cuda:0 --seed 8 \
+      --reload-every "${RELOAD:-1000}" --ckpt-every 250 --log-every 100 --no-progress --max-minutes "$MINUTES"
   echo "training done"
   ;;
 export)
@@ -58,7 +64,7 @@ torch.save(s, sys.argv[2])
 print("exported step", s["step"], s.get("metrics"))
 PYEOF
   cp "$D/run/log.jsonl" "$OUTDIR/" 2>/dev/null; tail -c 20000 "$D/main.out" > "$OUTDIR/main.out" 2>/dev/null
-  tail -n 2 "$D/g8.out" "$D/g9.out"; ls "$D/mix" | wc -l
+  tail -qn 1 "$D"/g*.out; ls "$D/mix" | wc -l
   ;;
 wait)
   while ! grep -q "training done" "$D/main.out"; do sleep 5; done

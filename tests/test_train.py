@@ -13,7 +13,7 @@ import torch
 
 from polycubenet.model.checkpoint import load_checkpoint, publish
 from polycubenet.synth.shards import write_dataset
-from polycubenet.train import PairData, TrainConfig, lr_at, train
+from polycubenet.train import DevicePairs, PairData, TrainConfig, lr_at, train
 
 
 @pytest.fixture(scope="module")
@@ -278,3 +278,35 @@ def test_ema_update_is_the_moving_average():
     ema_update(ema, model, 0.9)
     for e, b, m in zip(ema.parameters(), before, model.parameters()):
         assert torch.allclose(e, 0.9 * b + 0.1 * m)
+
+
+def test_device_batches_draw_what_the_numpy_builder_draws(shards):
+    """The GPU training's builder (run here on the CPU): every drawn row is a distinct subset of its own
+    pair's points, target, normal and anchor channels from the same point, and with the scaling on the
+    full condition comes back to diagonal 1 and the anchor normals stay unit, as ``PairData.batch``."""
+    data = PairData(shards)
+    dev = DevicePairs(data, torch.device("cpu"), anchors=6)
+    assert len(dev) == len(data)
+    gen = torch.Generator().manual_seed(0)
+    x0, cond, anchor = dev.batch(np.array([1, 4, 1]), 40, gen, dataclasses.replace(CFG, jitter=0.0, scale_aug=0.0))
+    assert x0.shape == (3, 40, 6) and cond.shape == (3, 40, 3) and anchor.shape == (3, 40, 6)
+    for b, k in enumerate((1, 4, 1)):
+        full = np.concatenate([data.target_points[k], data.target_normals[k], data.target_on_shape[k],
+                               data.anchor_normals[k]], axis=1)
+        row = np.concatenate([x0[b].numpy(), anchor[b].numpy()], axis=1)
+        hit = np.all(np.isclose(row[:, None, :], full[None], atol=1e-6), axis=2)  # (40, M): same point, all channels
+        assert hit.any(axis=1).all()
+        assert len({tuple(r) for r in np.round(row[:, :3], 6)}) == 40  # distinct within the row
+        c = cond[b].numpy()
+        assert np.isclose(c[:, None, :], data.cond[k][None], atol=1e-6).all(axis=2).any(axis=1).all()
+    assert not torch.equal(x0[0], x0[2])  # the same pair twice: two draws
+    x0, cond, anchor = dev.batch(np.array([0, 2, 5]), 128, gen, dataclasses.replace(CFG, jitter=0.0))
+    d = np.linalg.norm(cond.numpy().max(axis=1) - cond.numpy().min(axis=1), axis=-1)
+    np.testing.assert_allclose(d, 1.0, atol=1e-4)  # all 128 condition points: the full cloud, diagonal 1
+    np.testing.assert_allclose(np.linalg.norm(anchor[..., 3:].numpy(), axis=-1), 1.0, atol=1e-5)
+    # every point drawn without the scaling: the numpy builder's cloud, in another order
+    cfg0 = dataclasses.replace(CFG, jitter=0.0, scale_aug=0.0)
+    x0, cond = DevicePairs(data, torch.device("cpu")).batch(np.array([3]), 128, gen, cfg0)
+    ref, ref_cond = data.batch(np.array([3]), 128, np.random.default_rng(0), cfg0)
+    for a, b in ((x0, ref), (cond, ref_cond)):
+        np.testing.assert_allclose(np.sort(a[0].numpy(), axis=0), np.sort(b[0].numpy(), axis=0), atol=1e-6)
