@@ -121,7 +121,7 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int) -> dict:
     """Mesh through the learned source only (``--polycube learned``: the first draw at ``steps``,
     then the model's second draw when the policy has one; no classical fallback), as
     ``mesh_part`` does: name -> (valid and faithful, SJ min, which draw was kept: 1, 2 or None,
-    seconds)."""
+    seconds, the mesh's distance to the part (Hausdorff / diagonal), why the first draw was left)."""
     from polycubenet.inference import ModelSource
     from polycubenet.pipeline import PipelineConfig, mesh_part
     from polycubenet.policy import faithful
@@ -135,10 +135,12 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int) -> dict:
             q = r.report
             ok = bool(q is not None and q.valid and r.provenance == "learned" and faithful(r.mesh.meta))
             draw = 1 if r.fallback_reason is None else 2
+            dist = r.row()["hausdorff"]
             res[p.stem] = (ok, None if q is None else q.sj_min, draw if ok else None,
-                           round(time.perf_counter() - t0, 1))
+                           round(time.perf_counter() - t0, 1), None if dist is None else round(float(dist), 4),
+                           r.fallback_reason)
         except Exception as exc:  # noqa: BLE001 - report the failure in the row
-            res[p.stem] = (False, f"{type(exc).__name__}", None, round(time.perf_counter() - t0, 1))
+            res[p.stem] = (False, f"{type(exc).__name__}", None, round(time.perf_counter() - t0, 1), None, str(exc))
     return res
 
 
@@ -173,12 +175,13 @@ def main(argv=None) -> int:
     meshed = mesh_learned([p for p, _ in made], args.checkpoint, args.steps) if args.mesh else {}
     ex_meshed = mesh_learned(examples, args.checkpoint, args.steps) if args.mesh else {}
     ex_rows, _ = part_rows(args.checkpoint, examples, 4096, args.steps)
-    print(f"\n{'part':<18} {'genus':>5} {'first draw':<28} {'learned mesh':<22} shape")
+    print(f"\n{'part':<18} {'genus':>5} {'first draw':<28} {'learned mesh: SJ, Hausdorff':<28} shape")
     for r in rows:
         m = meshed.get(r["part"])
         ms = "" if m is None else (("valid, draw %d" % m[2]) if m[0] else "no") + (
-            f" {m[1]:.3f}" if isinstance(m[1], float) else f" {m[1]}")
-        print(f"{r['part']:<18} {r['genus']:>5} {r['category']:<28} {ms:<22} {r['shape']}")
+            f" {m[1]:.3f}" if isinstance(m[1], float) else f" {m[1]}") + (
+            f" {100 * m[4]:.1f}%" if m[4] is not None else "")
+        print(f"{r['part']:<18} {r['genus']:>5} {r['category']:<28} {ms:<28} {r['shape']}")
     acc = sum(r["accepted"] for r in rows)
     ex_acc = sum(r["accepted"] for r in ex_rows)
     print(f"\nunseen parts: learned polycube accepted {acc}/{len(rows)} ({acc / max(1, len(rows)):.0%}); "
