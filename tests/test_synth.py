@@ -27,7 +27,7 @@ from polycubenet.synth import (
     write_dataset,
 )
 from polycubenet.synth.__main__ import main as synth_main
-from polycubenet.synth.deform import FFD, Bend, RoundEdge, RoundHole
+from polycubenet.synth.deform import FFD, Bend, RoundEdge, RoundHole, SlantEnd
 from polycubenet.synth.pairs import snap_rotation
 from polycubenet.synth.polycube import convex_edges
 
@@ -202,6 +202,40 @@ def test_cad_features_add_slanted_ends_and_round_bosses_to_valid_pairs():
     base, cad = kinds(False), kinds(True)
     assert "round_edge/slanted" in cad and "round_edge/slanted" not in base
     assert cad.count("round_hole") > base.count("round_hole")
+
+
+def test_a_slanted_end_cuts_the_whole_end_face_and_leaves_the_rest():
+    """``SlantEnd``: the +x end face of the unit box, past z = -0.2, lands on the plane tilted atan(0.7)
+    from it (through the pivot line); a point 'fade' inside the face, or below the pivot, does not move;
+    invertible with the fade it is drawn with (2 slope reach), folded with a fade far too short."""
+    lo, hi = -0.5 * np.ones(3), 0.5 * np.ones(3)
+    cut = SlantEnd(axis=0, by=2, face=0.5, sign=1.0, pivot=-0.2, side=1.0, slope=0.7, fade=2 * 0.7 * 0.7)
+    ok, worst = check_invertible(cut, lo, hi, np.random.default_rng(3), n=8192)
+    assert ok and worst > 0.2, worst
+    g = np.linspace(-0.5, 0.5, 21)
+    face = np.array([[0.5, y, z] for y in g for z in g])
+    Y = cut(face)
+    past = face[:, 2] > -0.2
+    np.testing.assert_allclose(Y[past, 0], 0.5 - 0.7 * (face[past, 2] + 0.2), atol=1e-12)  # the slanted plane
+    np.testing.assert_allclose(Y[~past], face[~past], atol=1e-12)  # below the pivot: the end face stays
+    inner = face.copy()
+    inner[:, 0] = 0.5 - cut.fade - 1e-9
+    np.testing.assert_allclose(cut(inner), inner, atol=1e-12)  # beyond the fade: identity
+    # the cut reaches 0.49 into the part at the top edge: a whole end, not an edge's chamfer
+    assert 0.5 - Y[:, 0].min() == pytest.approx(0.49)
+    short = SlantEnd(axis=0, by=2, face=0.5, sign=1.0, pivot=-0.2, side=1.0, slope=0.7, fade=0.2)
+    assert not check_invertible(short, lo, hi, np.random.default_rng(3), n=8192)[0]
+    assert DeformationMap.from_dict(DeformationMap([cut]).to_dict()).maps[0] == cut
+
+
+def test_whole_slants_add_slanted_end_cuts_to_valid_pairs():
+    """``whole_slants``: some pairs get a ``slant_end`` map (make_pair checks each map's Jacobian and the
+    genus itself); without the option none does."""
+    with_, without = [], []
+    for i in range(10):
+        with_ += make_pair(pair_seed(6, i), n_cond=64, n_target=64, cad_features=True, whole_slants=True).deformation.kinds
+        without += make_pair(pair_seed(6, i), n_cond=64, n_target=64, cad_features=True).deformation.kinds
+    assert "slant_end" in with_ and "slant_end" not in without
 
 
 def test_non_invertible_maps_are_caught():

@@ -281,6 +281,37 @@ class Shear(ElementaryMap):
 
 
 @dataclasses.dataclass
+class SlantEnd(ElementaryMap):
+    """Cut one end of the part by a plane tilted ``atan(slope)`` from its end face.
+
+    The end face lies at ``face`` on ``axis`` (``sign`` +1: the high end, -1: the low end).  Past
+    ``pivot`` on ``by`` (``side`` +1: above it, -1: below it) each point moves inward along ``axis`` by
+    ``slope`` times its distance past the pivot, fully at the face and fading (smoothstep) to nothing
+    ``fade`` inside it: the end face becomes a pivot-to-edge slanted face across the whole end, as a
+    machined part's slanted end, where :class:`RoundEdge`'s long chamfer only cuts an edge.  Triangular
+    Jacobian with ``det = 1 - slope * past * smoothstep' / fade >= 1 - 1.5 * slope * reach / fade``
+    (``reach`` the farthest distance past the pivot): a bijection while ``fade > 1.5 * slope * reach``.
+    """
+
+    kind: ClassVar[str] = "slant_end"
+    axis: int
+    by: int
+    face: float
+    sign: float
+    pivot: float
+    side: float
+    slope: float
+    fade: float
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        w = _smoothstep((self.sign * (X[:, self.axis] - self.face) + self.fade) / self.fade)
+        past = np.maximum(0.0, self.side * (X[:, self.by] - self.pivot))
+        Y = X.copy()
+        Y[:, self.axis] = X[:, self.axis] - self.sign * self.slope * past * w
+        return Y
+
+
+@dataclasses.dataclass
 class Twist(ElementaryMap):
     """Rotate the cross-section about ``axis`` by ``rate * (x_axis - center_axis)`` radians."""
 
@@ -450,6 +481,7 @@ def random_deformation(
     *,
     strength: float | None = None,
     slanted_ends: bool = False,
+    whole_ends: bool = False,
 ) -> DeformationMap:
     """A random composition: roundings (holes, edges), then ramp / taper / shear / twist / bend / FFD.
 
@@ -467,6 +499,10 @@ def random_deformation(
         20-45 degrees to one of its faces, up to most of its cells' widths: the slanted end
         or large bevel a machined part has.  Off, the random stream is the one before
         this option existed.
+    whole_ends : bool, also (probability 0.5) cut a whole end of the bounding box (mostly of its
+        longest axis) by a plane at 20-45 degrees (:class:`SlantEnd`, pivot at 20-70 % of the height, the fade within 80 % of
+        the length, else a gentler slope, none under 15 degrees).  Off, the random stream is the one
+        before this option existed.
 
     Returns
     -------
@@ -524,6 +560,18 @@ def random_deformation(
             maps.append(RoundEdge(int(e["axis"]), np.asarray(e["corner"], dtype=np.float64).copy(),
                                   np.asarray(e["signs"], dtype=np.float64).copy(), float(r_b), "chamfer", fade,
                                   float(r_c)))
+
+    if whole_ends and rng.random() < 0.5:
+        axis = int(np.argmax(ext)) if rng.random() < 0.7 else int(rng.integers(3))  # mostly an end of the length
+        by = int(rng.choice([a for a in range(3) if a != axis]))
+        sign, side = float(rng.choice([-1.0, 1.0])), float(rng.choice([-1.0, 1.0]))
+        pivot = float(lo[by] + rng.uniform(0.2, 0.7) * ext[by])
+        reach = float(hi[by] - pivot if side > 0 else pivot - lo[by])
+        slope = float(np.tan(np.radians(rng.uniform(20.0, 45.0))))
+        slope = min(slope, 0.8 * ext[axis] / (2.0 * reach))  # the fade (2 slope reach) within 80 % of the length
+        if slope >= np.tan(np.radians(15.0)):
+            maps.append(SlantEnd(axis, by, float(hi[axis] if sign > 0 else lo[axis]), sign, pivot, side, slope,
+                                 2.0 * slope * reach))
 
     if strength > 0:
         s = strength

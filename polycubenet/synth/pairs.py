@@ -214,6 +214,7 @@ def make_pair(
     n_holes: int | None = None,
     strength: float | None = None,
     cad_features: bool = False,
+    whole_slants: bool = False,
 ) -> SynthPair:
     """Generate one pair from ``seed`` (see the module docstring for the steps).
 
@@ -231,6 +232,9 @@ def make_pair(
     cad_features : bool, also round bosses into cylinders (like holes) and cut slanted ends
         (``random_deformation(slanted_ends=True)``): features of machined parts the base
         generator lacks.  Off, a seed gives the pair it gave before this option existed.
+    whole_slants : bool, also cut a whole end by a slanted plane in half the pairs
+        (``random_deformation(whole_ends=True)``, :class:`~polycubenet.synth.deform.SlantEnd`).  Off,
+        a seed gives the pair it gave before this option existed.
 
     Returns
     -------
@@ -253,7 +257,8 @@ def make_pair(
         t1 = time.perf_counter()
         timings["polycube"] += t1 - t0
         edges = convex_edges(pc.xs, pc.ys, pc.zs, pc.occupancy)
-        dmap = random_deformation(rng, lo, hi, holes, edges, strength=strength, slanted_ends=cad_features)
+        dmap = random_deformation(rng, lo, hi, holes, edges, strength=strength, slanted_ends=cad_features,
+                                   whole_ends=whole_slants)
         ok, min_det = check_invertible(dmap, lo, hi, rng, extra=V0)
         timings["deformation"] += time.perf_counter() - t1
         if not ok:

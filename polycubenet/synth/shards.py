@@ -77,6 +77,7 @@ class ShardParams:
     edge_length: float = EDGE_LENGTH
     full: bool = False
     cad_features: bool = False
+    whole_slants: bool = False
 
 
 def pair_record(pair: SynthPair, index: int, full: bool = False) -> dict:
@@ -229,7 +230,8 @@ class Shard:
         p = self.meta["params"]
         return make_pair(int(self.arrays["seeds"][k]), n_cond=p["n_cond"], n_target=p["n_target"],
                          sampler=p["sampler"], edge_length=p["edge_length"],
-                         cad_features=bool(p.get("cad_features", False)))
+                         cad_features=bool(p.get("cad_features", False)),
+                         whole_slants=bool(p.get("whole_slants", False)))
 
 
 def load_shard(path: str | Path) -> Shard:
@@ -254,7 +256,8 @@ def iter_pairs(directory: str | Path) -> Iterator[dict]:
 def _make_record(task: tuple[int, int, ShardParams]) -> dict:
     dataset_seed, index, params = task
     pair = make_pair(pair_seed(dataset_seed, index), n_cond=params.n_cond, n_target=params.n_target,
-                     sampler=params.sampler, edge_length=params.edge_length, cad_features=params.cad_features)
+                     sampler=params.sampler, edge_length=params.edge_length, cad_features=params.cad_features,
+                     whole_slants=params.whole_slants)
     return pair_record(pair, index, full=params.full)
 
 
@@ -282,6 +285,7 @@ def write_dataset(
     overwrite: bool = False,
     progress: bool = True,
     cad_features: bool = False,
+    whole_slants: bool = False,
 ) -> list[Path]:
     """Generate ``count`` pairs into ``out/shard-*.npz`` plus ``out/dataset.json``.
 
@@ -303,6 +307,7 @@ def write_dataset(
         from an existing manifest in ``out``
     progress : bool, tqdm progress bar on stderr
     cad_features : bool, round bosses and slanted ends too (:func:`~polycubenet.synth.pairs.make_pair`)
+    whole_slants : bool, whole ends cut by slanted planes too (:func:`~polycubenet.synth.pairs.make_pair`)
 
     Returns
     -------
@@ -314,7 +319,8 @@ def write_dataset(
         raise ValueError(f"seed must be non-negative; got {seed}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    params = ShardParams(int(n_cond), int(n_target), str(sampler), float(edge_length), bool(full), bool(cad_features))
+    params = ShardParams(int(n_cond), int(n_target), str(sampler), float(edge_length), bool(full), bool(cad_features),
+                         bool(whole_slants))
     n_shards = (count + per_shard - 1) // per_shard
     shards = [
         {"name": f"shard-{k:05d}.npz", "first": k * per_shard, "count": min(per_shard, count - k * per_shard)}
