@@ -120,22 +120,22 @@ def make_parts(folder: Path, count: int, seed: int, family: str = "blocks") -> l
 def mesh_learned(paths: list[Path], checkpoint: str, steps: int) -> dict:
     """Mesh through the learned source only (``--polycube learned``: the first draw at ``steps``,
     then the model's second draw when the policy has one; no classical fallback), as
-    ``mesh_part`` does: name -> (valid, faithful and at least the quality bar ``min_sj``, SJ min, which draw was kept: 1, 2 or None,
-    seconds, the mesh's distance to the part (Hausdorff / diagonal), why the first draw was left)."""
+    ``mesh_part`` does: name -> (valid, faithful and at least the quality bar ``min_sj``, SJ min,
+    which draw was kept: 1, 2 or None, seconds, the mesh's distance to the part (Hausdorff /
+    diagonal), why the first draw was left)."""
     from polycubenet.inference import ModelSource
     from polycubenet.pipeline import PipelineConfig, mesh_part
     from polycubenet.policy import faithful
 
     res = {}
+    cfg = PipelineConfig(polycube="learned", target_hexes=3000)
     for p in paths:
         t0 = time.perf_counter()
         try:
-            r = mesh_part(p, ModelSource(checkpoint, steps=steps, device="cpu"),
-                          PipelineConfig(polycube="learned", target_hexes=3000))
+            r = mesh_part(p, ModelSource(checkpoint, steps=steps, device="cpu"), cfg)
             q = r.report
-            cfg = PipelineConfig()
             ok = bool(q is not None and q.valid and r.provenance == "learned" and faithful(r.mesh.meta)
-                      and (cfg.min_sj is None or (q.sj_min is not None and q.sj_min >= cfg.min_sj)))  # the quality bar auto keeps it by
+                      and (cfg.min_sj is None or (q.sj_min is not None and q.sj_min >= cfg.min_sj)))
             draw = 1 if r.fallback_reason is None else 2
             dist = r.row()["hausdorff"]
             res[p.stem] = (ok, None if q is None else q.sj_min, draw if ok else None,
