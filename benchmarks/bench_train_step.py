@@ -26,7 +26,7 @@ sys.path.insert(0, str(ROOT))
 
 from polycubenet.model import PolycubeNet  # noqa: E402
 from polycubenet.model.config import ModelConfig  # noqa: E402
-from polycubenet.train import DevicePairs, PairData, TrainConfig, _to_net, diffusion_of, ema_update  # noqa: E402
+from polycubenet.train import DevicePairs, PairData, TrainConfig, diffusion_of, draw_batch, ema_update  # noqa: E402
 
 
 def _sync(dev: torch.device) -> None:
@@ -48,11 +48,7 @@ def measure(data: PairData, mcfg: ModelConfig, cfg: TrainConfig, dev: torch.devi
     for i in range(steps + 2):
         t0 = time.perf_counter()
         idx = rng.integers(0, len(data), size=cfg.batch)
-        if on_device is not None:
-            gen = torch.Generator(device=dev).manual_seed(int(rng.integers(2**62)))
-            x0, cond, anchor = _to_net(on_device.batch(idx, cfg.points, gen, cfg), mcfg, dev)
-        else:
-            x0, cond, anchor = _to_net(data.batch(idx, cfg.points, rng, cfg, anchors=mcfg.anchor_dim), mcfg, dev)
+        x0, cond, anchor = draw_batch(data, on_device, idx, rng, cfg, mcfg, dev)
         _sync(dev)
         t1 = time.perf_counter()
         loss, _ = diffusion.training_loss(model, x0, cond, loss=cfg.loss, autocast=autocast, anchor=anchor,

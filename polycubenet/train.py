@@ -231,6 +231,16 @@ class DevicePairs:
         return torch.rand((B, N), generator=gen, device=self.dev).topk(points, dim=1).indices
 
 
+def draw_batch(data: PairData, on_device: DevicePairs | None, idx: np.ndarray, rng: np.random.Generator,
+               cfg: TrainConfig, mcfg: ModelConfig, dev) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """``(x0, cond, anchor)`` in network units for pairs ``idx``: drawn on the device by ``on_device``
+    when given (its generator seeded from ``rng``), else by :meth:`PairData.batch` with ``rng``."""
+    if on_device is not None:
+        gen = torch.Generator(device=dev).manual_seed(int(rng.integers(2**62)))
+        return _to_net(on_device.batch(idx, cfg.points, gen, cfg), mcfg, dev)
+    return _to_net(data.batch(idx, cfg.points, rng, cfg, anchors=mcfg.anchor_dim), mcfg, dev)
+
+
 def _subsample(rng: np.random.Generator, B: int, N: int, points: int) -> np.ndarray:
     """``(B, points)`` indices into ``N`` points: distinct within a row when ``points <= N``."""
     if points > N:
@@ -431,11 +441,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
                 print(f"[train] step {step}: {len(data)} pairs from {data.shards} shards", flush=True)
         rng = np.random.default_rng([cfg.seed, step, rank])
         idx = rng.integers(0, len(data), size=per_rank)
-        if on_device is not None:
-            bgen = torch.Generator(device=dev).manual_seed(int(rng.integers(2**62)))
-            x0, cond, anchor = _to_net(on_device.batch(idx, cfg.points, bgen, cfg), mcfg, dev)
-        else:
-            x0, cond, anchor = _to_net(data.batch(idx, cfg.points, rng, cfg, anchors=mcfg.anchor_dim), mcfg, dev)
+        x0, cond, anchor = draw_batch(data, on_device, idx, rng, cfg, mcfg, dev)
         for group in opt.param_groups:
             group["lr"] = lr_at(step, cfg)
         gen = torch.Generator(device=dev).manual_seed(int(rng.integers(2**62)))

@@ -500,9 +500,9 @@ def random_deformation(
         or large bevel a machined part has.  Off, the random stream is the one before
         this option existed.
     whole_ends : bool, also (probability 0.5) cut a whole end of the bounding box (mostly of its
-        longest axis) by a plane at 20-45 degrees (:class:`SlantEnd`, pivot at 20-70 % of the height, the fade within 80 % of
-        the length, else a gentler slope, none under 15 degrees).  Off, the random stream is the one
-        before this option existed.
+        longest axis) by a plane at 20-45 degrees (:class:`SlantEnd`: pivot at 20-70 % of the
+        height, the fade within 80 % of the length, else a gentler slope, none under 15 degrees).
+        Off, the random stream is the one before this option existed.
 
     Returns
     -------
