@@ -238,6 +238,18 @@ def test_whole_slants_add_slanted_end_cuts_to_valid_pairs():
     assert "slant_end" in with_ and "slant_end" not in without
 
 
+
+def test_max_strength_caps_the_global_maps():
+    """``max_strength=0``: the pairs keep their roundings and cuts but get no global map (ramp, taper,
+    shear, twist, bend, FFD), which some of the same seeds get without the cap."""
+    glob = {"ramp", "taper", "shear", "twist", "bend", "ffd"}
+    capped, free = [], []
+    for i in range(8):
+        capped += make_pair(pair_seed(6, i), n_cond=64, n_target=64, cad_features=True, max_strength=0.0).deformation.kinds
+        free += make_pair(pair_seed(6, i), n_cond=64, n_target=64, cad_features=True).deformation.kinds
+    assert glob & set(free) and not glob & set(capped)
+    assert {"round_hole", "round_edge"} & set(capped)
+
 def test_non_invertible_maps_are_caught():
     lo, hi = -0.5 * np.ones(3), 0.5 * np.ones(3)
     rng = np.random.default_rng(0)

@@ -33,6 +33,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also round bosses and cut slanted ends (features of machined parts; see make_pair)")
     p.add_argument("--whole-slants", action="store_true",
                    help="also cut whole ends by slanted planes (20-45 degrees) in half the pairs (see make_pair)")
+    p.add_argument("--max-strength", type=float, default=None,
+                   help="cap on the random strength of the global maps (0.35: the mild bends, tapers and shears "
+                        "of machined parts; default: no cap)")
     p.add_argument("--overwrite", action="store_true", help="regenerate existing shards / replace another dataset")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -46,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
             args.out, args.count, args.seed, per_shard=args.per_shard, n_cond=args.n_cond,
             n_target=args.n_target, workers=args.workers, sampler=args.sampler,
             edge_length=args.edge_length, full=args.full, overwrite=args.overwrite, cad_features=args.cad_features,
-            whole_slants=args.whole_slants,
+            whole_slants=args.whole_slants, max_strength=args.max_strength,
             progress=not args.no_progress,
         )
     except ValueError as exc:

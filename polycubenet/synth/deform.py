@@ -482,6 +482,7 @@ def random_deformation(
     strength: float | None = None,
     slanted_ends: bool = False,
     whole_ends: bool = False,
+    max_strength: float | None = None,
 ) -> DeformationMap:
     """A random composition: roundings (holes, edges), then ramp / taper / shear / twist / bend / FFD.
 
@@ -503,6 +504,8 @@ def random_deformation(
         longest axis) by a plane at 20-45 degrees (:class:`SlantEnd`: pivot at 20-70 % of the
         height, the fade within 80 % of the length, else a gentler slope, none under 15 degrees).
         Off, the random stream is the one before this option existed.
+    max_strength : float or None, a cap on the random ``strength`` (0.35: the mild global maps of
+        machined parts, no bends or twists at full strength); the random stream does not change.
 
     Returns
     -------
@@ -513,6 +516,8 @@ def random_deformation(
     center = 0.5 * (lo + hi)
     if strength is None:
         strength = float(rng.choice([0.0, 0.35, 0.7, 1.0], p=[0.1, 0.3, 0.35, 0.25]))
+        if max_strength is not None:
+            strength = min(strength, float(max_strength))
     maps: list[ElementaryMap] = []
 
     # holes -> cylinders

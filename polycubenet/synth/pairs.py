@@ -215,6 +215,7 @@ def make_pair(
     strength: float | None = None,
     cad_features: bool = False,
     whole_slants: bool = False,
+    max_strength: float | None = None,
 ) -> SynthPair:
     """Generate one pair from ``seed`` (see the module docstring for the steps).
 
@@ -235,6 +236,8 @@ def make_pair(
     whole_slants : bool, also cut a whole end by a slanted plane in half the pairs
         (``random_deformation(whole_ends=True)``, :class:`~polycubenet.synth.deform.SlantEnd`).  Off,
         a seed gives the pair it gave before this option existed.
+    max_strength : float or None, cap on the random strength of the global maps
+        (``random_deformation(max_strength=...)``: 0.35 for machined-like parts); None: no cap.
 
     Returns
     -------
@@ -258,7 +261,7 @@ def make_pair(
         timings["polycube"] += t1 - t0
         edges = convex_edges(pc.xs, pc.ys, pc.zs, pc.occupancy)
         dmap = random_deformation(rng, lo, hi, holes, edges, strength=strength, slanted_ends=cad_features,
-                                   whole_ends=whole_slants)
+                                   whole_ends=whole_slants, max_strength=max_strength)
         ok, min_det = check_invertible(dmap, lo, hi, rng, extra=V0)
         timings["deformation"] += time.perf_counter() - t1
         if not ok:
