@@ -38,7 +38,7 @@ from prefect_dask import DaskTaskRunner
 from polycubenet import library
 from polycubenet.errors import PartError, PolycubeError
 from polycubenet.pipeline import PipelineConfig
-from polycubenet.policy import learned_retry, leaves_source, source_names
+from polycubenet.policy import learned_draws, leaves_source, source_names
 from tasks import mesh as T
 from tasks.common import results_dir
 
@@ -152,12 +152,12 @@ def mesh_library(
     paths = library.discover(inputs, exclude=[out_p, work_p])
     hashes = [library.file_hash(p) for p in paths]
     names = library.part_names(paths, hashes)
-    retry = False
-    if polycube == "learned":  # the model's second draw when its first uses fewer steps (the policy)
+    draws: tuple[int, ...] = ()
+    if polycube == "learned":  # the model's further draws after its first (the policy)
         from polycubenet.inference import resolve_steps
 
-        retry = learned_retry(resolve_steps(steps, device, checkpoint)[1]) is not None
-    sources = source_names(polycube, fallback, classical=library.classical_available(), retry=retry)
+        draws = learned_draws(resolve_steps(steps, device, checkpoint)[1])
+    sources = source_names(polycube, fallback, classical=library.classical_available(), draws=draws)
     parts: list[_Part] = []
     for p, h, n in zip(paths, hashes, names):
         keys = {}
@@ -216,7 +216,7 @@ def mesh_library(
                paths={s: {st: path_of(part, st, s) for st in library.STAGES[1:5]} for s in srcs},
                config=config, formats=formats, out_dir=str(out_p / part.name),
                result_storage=str(result_storage), learned=learned,
-               model={"checkpoint": None if checkpoint is None else str(checkpoint), "device": device})
+               model={"checkpoint": None if checkpoint is None else str(checkpoint), "device": device, "steps": steps})
 
     def start_polycube(part: _Part):
         if part.source == "learned":

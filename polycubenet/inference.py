@@ -236,13 +236,21 @@ class ModelSource:
                  device: str | None = None):
         self.model, self.steps, self.seed, self.device = model, steps, seed, device
 
-    def retry_source(self) -> "ModelSource | None":
-        """The model's second draw (:func:`polycubenet.policy.learned_retry`): the same model, seed
-        and device at more DDIM steps; None when this source's steps already are as many."""
-        from .policy import learned_retry
+    def further_draws(self) -> tuple[int, ...]:
+        """The ``K`` of the model's further draws ``learned+K`` after this source's own
+        (:func:`polycubenet.policy.learned_draws` of its resolved steps)."""
+        from .policy import learned_draws
 
-        steps = learned_retry(resolve_steps(self.steps, self.device, self.model)[1])
-        return None if steps is None else ModelSource(self.model, steps=steps, seed=self.seed, device=self.device)
+        return learned_draws(resolve_steps(self.steps, self.device, self.model)[1])
+
+    def draw_source(self, k: int) -> "ModelSource":
+        """The source of the further draw ``learned+k``: the same model and device, at that draw's
+        steps and seed offset (:data:`polycubenet.policy.LEARNED_DRAWS`) from this source's."""
+        from .policy import draw_seed, draw_steps
+
+        name = f"learned+{int(k)}"
+        steps = draw_steps(name, resolve_steps(self.steps, self.device, self.model)[1])
+        return ModelSource(self.model, steps=steps, seed=self.seed + draw_seed(name), device=self.device)
 
     def __call__(self, sample, V, F, config) -> PolycubeCloud:
         loaded = load_model(self.model, self.device)

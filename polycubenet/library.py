@@ -43,7 +43,7 @@ from .atomic import write_json, write_text
 from .data import HexMesh, Part, Polycube, PolycubeCloud, SurfaceSample
 from .errors import PolycubeError
 from .pipeline import OracleSource, PartResult, PipelineConfig
-from .policy import draw_steps, refinement, source_config
+from .policy import draw_seed, draw_steps, refinement, source_config
 
 #: part files the library reads (``polycubenet.io.load_part``)
 CAD_SUFFIXES = (".step", ".stp", ".iges", ".igs")
@@ -301,12 +301,12 @@ def classical_available() -> bool:
 
 
 def make_source(kind: str, part_path: str | os.PathLike, transform, *, checkpoint: str | os.PathLike | None = None,
-                device: str | None = None):
+                device: str | None = None, steps: int | None = None):
     """A per-part polycube source by name: ``oracle``, ``classical``, ``voxel`` or ``voxel+K``
     (the voxel polycube ``K`` refinement steps finer, :func:`polycubenet.policy.source_names`;
     ``voxel+K*`` is the same polycube, partitioned denser),
-    or ``learned+1``: the model of ``checkpoint`` (on ``device``) drawn again at
-    :data:`polycubenet.policy.LEARNED_RETRY_STEPS` DDIM steps, one part at a time.
+    or ``learned+K``: the model of ``checkpoint`` (on ``device``) drawn again (the further draw ``K`` of
+    :data:`polycubenet.policy.LEARNED_DRAWS` after a first draw at ``steps``), one part at a time.
 
     (``learned`` is not made here: the flow runs the model's first draw in batches across parts.)
     This is the one place the classical fallbacks plug in.
@@ -324,12 +324,12 @@ def make_source(kind: str, part_path: str | os.PathLike, transform, *, checkpoin
         from .voxel import VoxelSource
 
         return VoxelSource(refine=refine)
-    if kind == "learned+1":
+    if base == "learned" and refine:
         from .inference import ModelSource
 
-        return ModelSource(checkpoint, steps=draw_steps(kind, None), device=device)
+        return ModelSource(checkpoint, steps=steps, device=device).draw_source(refine)
     raise ValueError(f"unknown per-part polycube source {kind!r}; expected 'oracle', 'classical', 'voxel', 'voxel+K' "
-                     "or 'learned+1'")
+                     "or 'learned+K'")
 
 
 def source_extra(kind: str, part_path: str | os.PathLike, checkpoint: str | os.PathLike | None = None, *,
@@ -346,9 +346,13 @@ def source_extra(kind: str, part_path: str | os.PathLike, checkpoint: str | os.P
     if refinement(kind)[0] == "learned":
         from .inference import resolve_steps
 
-        dev_type, used = resolve_steps(draw_steps(kind, steps), device, checkpoint)
-        return {"checkpoint": file_hash(checkpoint) if checkpoint and Path(checkpoint).is_file() else str(checkpoint),
-                "steps": used, "device": dev_type}
+        dev_type, used = resolve_steps(steps, device, checkpoint)
+        used = draw_steps(kind, used)
+        extra = {"checkpoint": file_hash(checkpoint) if checkpoint and Path(checkpoint).is_file() else str(checkpoint),
+                 "steps": used, "device": dev_type}
+        if refinement(kind)[1]:  # a further draw: its seed offset too
+            extra["seed"] = draw_seed(kind)
+        return extra
     if kind == "classical" and classical_available():
         # the construction's settings and version: a cached classical cloud made by older code is not reused
         from .classical import VERSION, ClassicalConfig
@@ -396,12 +400,12 @@ def read_loaded(path: str | os.PathLike):
 
 def polycube_cloud(kind: str, part_path: str | os.PathLike, loaded: str | os.PathLike, dest: str | os.PathLike,
                    config: PipelineConfig, *, checkpoint: str | os.PathLike | None = None,
-                   device: str | None = None) -> Path:
-    """Run a per-part polycube source (:func:`make_source`; ``checkpoint`` and ``device`` for the
-    model's second draw) on a loaded part; save the cloud."""
+                   device: str | None = None, steps: int | None = None) -> Path:
+    """Run a per-part polycube source (:func:`make_source`; ``checkpoint``, ``device`` and the first
+    draw's ``steps`` for the model's further draws) on a loaded part; save the cloud."""
     part, sample, T, _ = read_loaded(loaded)
-    cloud = make_source(kind, part_path, T, checkpoint=checkpoint, device=device)(sample, part.vertices, part.faces,
-                                                                               config)
+    source = make_source(kind, part_path, T, checkpoint=checkpoint, device=device, steps=steps)
+    cloud = source(sample, part.vertices, part.faces, config)
     cloud.meta.setdefault("provenance", kind)
     return cloud.save(dest)
 

@@ -117,25 +117,27 @@ def source_chain(source, config: PipelineConfig) -> list[tuple[str, Callable]]:
     ``classical``: the surface-flattening construction, then the voxel polycube;
     ``voxel``: the voxel polycube alone; ``auto``: the injected source, then the classical chain;
     the voxel polycube is followed by its refinements (``voxel+1``, ...), and an injected source
-    with a ``retry_source()`` (:class:`polycubenet.inference.ModelSource`) by that second draw
-    (``learned+1``).
+    with ``further_draws()`` / ``draw_source(k)`` (:class:`polycubenet.inference.ModelSource`) by
+    those draws (``learned+1``, ...).
     """
     from .voxel import VoxelSource
 
     if config.polycube not in POLYCUBE_MODES:
         raise ValueError(f"polycube must be one of {POLYCUBE_MODES}; got {config.polycube!r}")
     mode = "classical" if source is None and config.polycube in ("learned", "auto") else config.polycube
-    # the model's second draw, when the injected source has one (policy.learned_retry)
-    retry = getattr(source, "retry_source", None)
-    retry = retry() if callable(retry) and mode in ("learned", "auto") else None
+    # the model's further draws, when the injected source has them (policy.learned_draws)
+    further = getattr(source, "further_draws", None)
+    draws = tuple(further()) if callable(further) and mode in ("learned", "auto") else ()
 
     def make(name: str):
         base, k = refinement(name)
         if base == "voxel":
             return VoxelSource(config.voxel, refine=k)
-        return {"learned": source, "learned+1": retry, "classical": ClassicalSource(config.classical)}[name]
+        if base == "learned" and k:
+            return source.draw_source(k)
+        return {"learned": source, "classical": ClassicalSource(config.classical)}[name]
 
-    return [(name, make(name)) for name in source_names(mode, retry=retry is not None)]
+    return [(name, make(name)) for name in source_names(mode, draws=draws)]
 
 
 class PolycubeSource(Protocol):

@@ -10,12 +10,13 @@ to ``seconds`` as it finishes, and return an :class:`Attempt`; the policy decide
 The rules:
 
 * **Order** (:func:`source_names`): ``auto`` = learned, then the classical chain;
-  the learned source is followed by a second draw of the model at
-  :data:`LEARNED_RETRY_STEPS` DDIM steps (``learned+1``, :func:`learned_retry`) when its first
-  draw used fewer (the checkpoint's default: 1 step on a CPU), tried only when the first
-  is left: one step is best on synthetic pairs, more steps on real parts whose slanted or round
-  features the one-step cloud blurs (never-seen parts meshed through it with the session-9 file:
-  blocks 9 -> 12, mixed 5 -> 7 and 5 -> 5 of 16; ``benchmarks/unseen_parts.py --mesh``);
+  the learned source's first draw (at the run's DDIM steps: the checkpoint's default, 1 step
+  on a CPU) is followed by further draws of the model, :data:`LEARNED_DRAWS` (``learned+1``,
+  ``learned+2``, ...: more steps, other seeds; :func:`learned_draws`), each tried only when
+  the one before is left: one step is best on synthetic pairs, more steps on real parts whose
+  slanted or round features the one-step cloud blurs, and a draw is cheap (0.2-0.7 s at 4096
+  points on one CPU core, with its extraction) beside the classical chain (6-9 s); see
+  :data:`LEARNED_DRAWS` for the measurements;
   ``classical`` = surface flattening, then the voxel polycube (its last resort, which
   exists for every closed part); ``voxel`` alone; ``learned`` / ``oracle`` alone, or
   followed by the classical chain with ``fallback``.  The voxel polycube is followed by
@@ -66,24 +67,48 @@ from .errors import PartError, PolycubeError
 MODES = ("auto", "learned", "classical", "voxel")
 #: finer voxel polycubes after the first one (``voxel+1`` ... ``voxel+3``)
 VOXEL_REFINEMENTS = 3
-#: DDIM steps of the learned source's second draw (``learned+1``)
-LEARNED_RETRY_STEPS = 4
+#: the model's further draws after its first, in order: ``(DDIM steps, seed offset)`` of ``learned+1``,
+#: ``learned+2``, ...  (a draw never uses fewer steps than the first; one that would repeat the first is
+#: skipped, :func:`learned_draws`).  Measured on never-seen parts meshed valid, faithful and >= 0.2
+#: through the learned source (of 16, ``benchmarks/unseen_parts.py --mesh``): session 9, one 4-step draw
+#: after the first: blocks 9 -> 12, mixed 5 -> 7 and 5 -> 5.  Session 12, two more 4-step draws (seeds
+#: +1, +2) with the 21.00 h file: mixed seed 11 6 -> 7, seed 41 (first 10 parts) 3 -> 3, while a draw
+#: that passes extraction and then misses the part costs a pull-back (10-25 s a draw): not kept
+LEARNED_DRAWS = ((4, 0),)
 #: the very last source, ``voxel+3*``: the finest voxel polycube partitioned into this many times the hexes
 DENSER_HEXES = 1.5
 
 
-def learned_retry(steps) -> int | None:
-    """DDIM steps of the model's second draw after a first one at ``steps`` (an int, or the
-    GPU's ``"stride4"``): :data:`LEARNED_RETRY_STEPS` when that is more, else None (no retry)."""
-    if isinstance(steps, (int, np.integer)) and not isinstance(steps, bool) and steps < LEARNED_RETRY_STEPS:
-        return LEARNED_RETRY_STEPS
-    return None
+def _int_steps(steps) -> bool:
+    return isinstance(steps, (int, np.integer)) and not isinstance(steps, bool)
 
 
 def draw_steps(source: str, steps):
-    """DDIM steps a learned source draws at: ``steps`` (the run's setting) for ``learned``,
-    :data:`LEARNED_RETRY_STEPS` for its second draw ``learned+1``."""
-    return LEARNED_RETRY_STEPS if source == "learned+1" else steps
+    """DDIM steps a learned source draws at after a first draw at ``steps`` (the run's setting):
+    ``steps`` for ``learned``, for ``learned+K`` the steps of its :data:`LEARNED_DRAWS` entry, or
+    ``steps`` when that is more."""
+    k = refinement(source)[1]
+    if not k:
+        return steps
+    want = LEARNED_DRAWS[k - 1][0]
+    return max(want, int(steps)) if _int_steps(steps) else want
+
+
+def draw_seed(source: str) -> int:
+    """The seed offset of a learned source's draw: 0 for ``learned``, its :data:`LEARNED_DRAWS`
+    entry's for ``learned+K``."""
+    k = refinement(source)[1]
+    return LEARNED_DRAWS[k - 1][1] if k else 0
+
+
+def learned_draws(steps) -> tuple[int, ...]:
+    """The further draws ``K`` (sources ``learned+K``) after a first draw at ``steps``: every entry
+    of :data:`LEARNED_DRAWS` that would not repeat the first draw (same steps, seed offset 0); none
+    after a first draw at a schedule that is not a step count (the GPU's ``"stride4"``)."""
+    if not _int_steps(steps):
+        return ()
+    return tuple(k for k in range(1, len(LEARNED_DRAWS) + 1)
+                 if (draw_steps(f"learned+{k}", steps), draw_seed(f"learned+{k}")) != (int(steps), 0))
 
 
 def refinement(source: str) -> tuple[str, int]:
@@ -112,22 +137,23 @@ def source_config(source: str, config):
 
 def source_label(source: str) -> str:
     """How reasons name a source: ``voxel+2`` is "voxel (refinement 2)", ``voxel+3*``
-    "voxel (refinement 3, 1.5x hexes)", ``learned+1`` "learned (second draw, 4 steps)"."""
+    "voxel (refinement 3, 1.5x hexes)", ``learned+2`` "learned (draw 3: 4 steps, seed +1)" (the steps of
+    :data:`LEARNED_DRAWS`; a run at more steps draws at its own)."""
     base, k = refinement(source)
     if base == "learned" and k:
-        return f"learned (second draw, {LEARNED_RETRY_STEPS} steps)"
+        return f"learned (draw {k + 1}: {LEARNED_DRAWS[k - 1][0]} steps, seed +{draw_seed(source)})"
     if denser(source):
         return f"{base} (refinement {k}, {DENSER_HEXES:g}x hexes)"
     return f"{base} (refinement {k})" if k else source
 
 
-def source_names(mode: str, fallback: bool = False, classical: bool = True, retry: bool = False) -> list[str]:
+def source_names(mode: str, fallback: bool = False, classical: bool = True, draws: tuple[int, ...] = ()) -> list[str]:
     """The sources a part tries, in order, for polycube mode ``mode``.
 
     ``fallback`` adds the classical chain after ``learned`` / ``oracle`` (``auto`` always has
     it); ``classical=False`` (the flattening construction unavailable) leaves the voxel
-    polycube alone in the classical chain; ``retry`` (the first draw's steps have a
-    :func:`learned_retry`) adds the model's second draw ``learned+1`` after ``learned``.
+    polycube alone in the classical chain; ``draws`` (:func:`learned_draws` of the first draw's
+    steps) adds the model's further draws ``learned+K`` after ``learned``.
     """
     voxel = ["voxel"] + [f"voxel+{k}" for k in range(1, VOXEL_REFINEMENTS + 1)] + [f"voxel+{VOXEL_REFINEMENTS}*"]
     if mode == "voxel":
@@ -135,7 +161,9 @@ def source_names(mode: str, fallback: bool = False, classical: bool = True, retr
     rest = (["classical"] if classical else []) + voxel
     if mode == "classical":
         return rest
-    first = ["learned", "learned+1"] if mode in ("auto", "learned") and retry else [mode if mode != "auto" else "learned"]
+    first = [mode if mode != "auto" else "learned"]
+    if mode in ("auto", "learned"):
+        first += [f"learned+{k}" for k in draws]
     return first + (rest if fallback or mode == "auto" else [])
 
 
@@ -247,7 +275,7 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
     ``attempt(source, tracker)`` runs the source's stages, setting ``tracker.stage`` as it goes
     and adding stage seconds to ``tracker.seconds``; it returns an :class:`Attempt` or raises.
     A voxel refinement (``voxel+K``) is tried only when the source just before it gave a mesh;
-    the model's second draw (``learned+1``) whenever the first is left.
+    the model's further draws (``learned+K``) whenever the draw before is left.
     An error that :func:`leaves_source` does not cover is raised as it is, with
     ``exc.stage`` and ``exc.source`` set, after ``exc.fallback_reason`` records the sources
     left before it.

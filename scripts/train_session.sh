@@ -9,9 +9,10 @@
 #    a fresh optimizer with a short warm-up; INIT=FILE starts from another file instead, e.g. an unpublished
 #    run's last.pt) with the recipe recorded in the committed one, into $RUN (default
 #    /work/run-session), stopping cleanly after MINUTES, on $DATA/mix: links to every training shard;
-# 3. meanwhile, one more process makes the further training sets (seed 4, 8192 pairs; seed 5, 8192 pairs
-#    with --cad-features: round bosses, slanted ends) and links each finished shard into $DATA/mix, where
-#    the training picks it up (--reload-every 200), so training starts after the first set only;
+# 3. meanwhile, one more process makes the further training sets ($SETS: folder, link prefix, seed and
+#    synth flags of each; by default seed 4, 8192 pairs; seed 5, 8192 pairs with --cad-features: round
+#    bosses, slanted ends) and links each finished shard into $DATA/mix, where the training picks it up
+#    (--reload-every 200), so training starts after the first set only;
 # 4. publish and commit with:   scripts/publish_checkpoint.sh $RUN 1
 # Re-running the same command resumes $RUN/last.pt.  Logs: $RUN/train.out, $RUN/data.out.
 set -euo pipefail
@@ -46,12 +47,20 @@ setsid nohup bash -c "
       $RECIPE --batch $BATCH --steps $STEPS --lr $LR --min-lr-ratio $MIN_LR_RATIO --fit-steps $FIT --warmup 50 --threads $THREADS \
       --seed $SEED --reload-every 200 --ckpt-every 100 --log-every 50 --no-progress --max-minutes $MINUTES
 " > "$RUN/train.out" 2>&1 &
-# the further sets, one process, each shard linked as soon as it is written (the training re-reads the folder)
+# the further sets: "FOLDER PREFIX SEED [synth flags]" separated by ';' (8192 pairs each)
+SETS=${SETS:-"train4 1 4; train5cad 2 5 --cad-features"}
+LINKS="" MAKE=""
+IFS=';' read -ra _sets <<< "$SETS"
+for spec in "${_sets[@]}"; do
+  read -r folder prefix seed flags <<< "$spec"
+  LINKS="$LINKS $(link "$folder" "$prefix");"
+  MAKE="$MAKE $SYNTH --out $DATA/$folder --count 8192 --seed $seed --workers 1 $flags;"
+done
+# one process, each shard linked as soon as it is written (the training re-reads the folder)
 setsid nohup bash -c "
   while [ ! -e $DATA/mix/shard-000000.npz ]; do sleep 30; done
-  ( while true; do $(link train4 1); $(link train5cad 2); sleep 60; done ) & L=\$!
-  $SYNTH --out $DATA/train4 --count 8192 --seed 4 --workers 1 &&
-  $SYNTH --out $DATA/train5cad --count 8192 --seed 5 --workers 1 --cad-features
+  ( while true; do $LINKS sleep 60; done ) & L=\$!
+  $MAKE
   sleep 61; kill \$L
 " > "$RUN/data.out" 2>&1 &
 echo "training in the background: $RUN/train.out, more data: $RUN/data.out (recipe: $RECIPE)"

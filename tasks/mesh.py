@@ -28,11 +28,11 @@ def load_sample(path: str, dest: str, key: str, config: PipelineConfig, name: st
 
 @task(**task_options("polycube"))
 def polycube_cloud(kind: str, path: str, loaded: str, dest: str, key: str, config: PipelineConfig, name: str = "",
-                   checkpoint: str | None = None, device: str | None = None) -> dict:
+                   checkpoint: str | None = None, device: str | None = None, steps: int | None = None) -> dict:
     """A per-part polycube cloud (``oracle`` sidecar, ``classical`` construction, voxel polycube, the
-    model's second draw ``learned+1`` from ``checkpoint`` on ``device``)."""
+    model's further draws ``learned+K`` from ``checkpoint`` on ``device`` after a first at ``steps``)."""
     return _record("polycube", dest, lambda: library.polycube_cloud(kind, path, loaded, dest, config,
-                                                                     checkpoint=checkpoint, device=device))
+                                                                     checkpoint=checkpoint, device=device, steps=steps))
 
 
 @task(name="generate", cache_policy=NO_CACHE, retries=RETRIES, retry_delay_seconds=[5, 30],
@@ -118,8 +118,8 @@ def mesh_chain(name: str, path: str, loaded: str, sources: list[str], keys: dict
     ``keys[source][stage]`` and ``paths[source][stage]`` are the cache keys and files of each
     source's chain (:func:`polycubenet.library.chain_keys`); ``learned`` is ``{"record": ...}``
     (the batched generation's cloud) or ``{"error": ...}`` (generation was rejected) when the
-    first source is the model; ``model`` (``checkpoint``, ``device``) is for its second draw
-    ``learned+1``, made here one part at a time.  A source is left for the next one when its polycube is
+    first source is the model; ``model`` (``checkpoint``, ``device``, ``steps``) is for its further
+    draws ``learned+K``, made here one part at a time.  A source is left for the next one when its polycube is
     rejected (``PolycubeError`` at polycube or extract) or its pulled-back mesh is not valid;
     the first valid mesh is exported, or when none is, the one with the highest minimum scaled
     Jacobian (``pipeline.mesh_rank``).  A ``PartError`` / ``PolycubeError`` elsewhere is final
@@ -178,7 +178,7 @@ def _chain(state, name, path, loaded, sources, keys, paths, config, formats, out
             tracker.seconds["polycube"] = float(learned["record"].get("seconds") or 0.0)
         else:
             run("polycube", polycube_cloud, src, tracker, kind=src, path=path, loaded=loaded, dest=p["polycube"],
-                config=config, **(model if src == "learned+1" else {}))
+                config=config, **(model if src.startswith("learned+") else {}))
         run("extract", cleanup_extract, src, tracker, cloud=att["polycube"]["path"], loaded=loaded, dest=p["extract"],
             config=config)
         run("register", register, src, tracker, extracted=att["extract"]["path"], loaded=loaded, dest=p["register"],

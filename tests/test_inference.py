@@ -234,20 +234,29 @@ def test_a_checkpoints_own_default_steps_are_used_on_cpu(tmp_path):
     assert resolve_steps(None, "cpu", path) == ("cpu", 2) and resolve_steps(7, "cpu", path) == ("cpu", 7)
 
 
-def test_model_source_second_draw_and_its_place_in_the_chain(ckpt):
-    """``retry_source`` is the same model, seed and device at the policy's retry steps, only after a
-    cheaper first draw; the pipeline puts it right after the first (policy.source_names)."""
+def test_model_source_further_draws_and_their_place_in_the_chain(ckpt, monkeypatch):
+    """``draw_source(k)`` is the same model and device at the policy's steps and seed offset of draw
+    ``k``; the pipeline puts the draws right after the first (policy.source_names), without one that
+    would repeat the first."""
+    from polycubenet import policy
     from polycubenet.pipeline import source_chain
-    from polycubenet.policy import LEARNED_RETRY_STEPS
 
+    assert ModelSource(ckpt, steps=1, device="cpu").further_draws() == (1,)  # the shipped table
+    assert ModelSource(ckpt, steps=4, device="cpu").further_draws() == ()
+    LEARNED_DRAWS = ((4, 0), (4, 1), (4, 2))
+    monkeypatch.setattr(policy, "LEARNED_DRAWS", LEARNED_DRAWS)
     src = ModelSource(ckpt, steps=1, seed=2, device="cpu")
-    retry = src.retry_source()
-    assert (retry.model, retry.steps, retry.seed, retry.device) == (ckpt, LEARNED_RETRY_STEPS, 2, "cpu")
-    assert retry.retry_source() is None and ModelSource(ckpt, steps=8, device="cpu").retry_source() is None
+    assert src.further_draws() == (1, 2, 3)
+    d1, d3 = src.draw_source(1), src.draw_source(3)
+    assert (d1.model, d1.steps, d1.seed, d1.device) == (ckpt, LEARNED_DRAWS[0][0], 2, "cpu")
+    assert (d3.steps, d3.seed) == (LEARNED_DRAWS[2][0], 2 + LEARNED_DRAWS[2][1])
+    assert d1.further_draws() == (2, 3) and ModelSource(ckpt, steps=8, device="cpu").draw_source(2).steps == 8
     chain = source_chain(src, PipelineConfig(polycube="auto"))
-    assert [n for n, _ in chain][:3] == ["learned", "learned+1", "classical"]
-    assert chain[0][1] is src and chain[1][1].steps == LEARNED_RETRY_STEPS
-    assert [n for n, _ in source_chain(retry, PipelineConfig(polycube="auto"))][:2] == ["learned", "classical"]
-    assert [n for n, _ in source_chain(src, PipelineConfig(polycube="learned"))] == ["learned", "learned+1"]
+    assert [n for n, _ in chain][:5] == ["learned", "learned+1", "learned+2", "learned+3", "classical"]
+    assert chain[0][1] is src and chain[1][1].steps == LEARNED_DRAWS[0][0] and chain[2][1].seed == 3
+    assert [n for n, _ in source_chain(d1, PipelineConfig(polycube="auto"))][:4] == [
+        "learned", "learned+2", "learned+3", "classical"]
+    assert [n for n, _ in source_chain(src, PipelineConfig(polycube="learned"))] == [
+        "learned", "learned+1", "learned+2", "learned+3"]
     # an injected source without a second draw (a test's fake, the oracle) is used alone
     assert [n for n, _ in source_chain(lambda *a: None, PipelineConfig(polycube="learned"))] == ["learned"]

@@ -6,7 +6,8 @@ from __future__ import annotations
 import pytest
 
 from polycubenet.errors import PartError, PolycubeError
-from polycubenet.policy import (LEARNED_RETRY_STEPS, Attempt, learned_retry, leaves_source, refinement, run_chain,
+from polycubenet import policy
+from polycubenet.policy import (LEARNED_DRAWS, Attempt, draw_seed, draw_steps, learned_draws, leaves_source, refinement, run_chain,
                                 source_label, source_names)
 
 
@@ -75,23 +76,35 @@ def test_the_last_source_partitions_the_finest_voxel_polycube_denser():
     assert calls == VOXELS[:4] and out.chosen.source == "voxel+1"
 
 
-def test_the_models_second_draw_only_after_a_cheaper_first():
-    # a first draw under LEARNED_RETRY_STEPS gets a second one right after it, in auto and learned
-    assert learned_retry(1) == LEARNED_RETRY_STEPS == 4 and learned_retry(3) == 4
-    assert learned_retry(4) is None and learned_retry(32) is None and learned_retry("stride4") is None
-    assert source_names("auto", retry=True) == ["learned", "learned+1", "classical"] + VOXELS
-    assert source_names("learned", retry=True) == ["learned", "learned+1"]
-    assert source_names("oracle", fallback=True, retry=True)[:2] == ["oracle", "classical"]
-    assert source_names("classical", retry=True) == ["classical"] + VOXELS
-    assert source_label("learned+1") == "learned (second draw, 4 steps)"
+def test_the_models_further_draws_follow_the_first(monkeypatch):
+    # the shipped table: one 4-step draw after a cheaper first, none after a first at 4 steps or more
+    assert LEARNED_DRAWS == ((4, 0),) and learned_draws(1) == (1,) and learned_draws(4) == () == learned_draws(8)
+    # a longer table: never with fewer steps than the first, never repeating the first
+    monkeypatch.setattr(policy, "LEARNED_DRAWS", ((4, 0), (4, 1), (4, 2)))
+    assert learned_draws(1) == (1, 2, 3) and learned_draws(4) == (2, 3) and learned_draws("stride4") == ()
+    assert [draw_steps(f"learned+{k}", 1) for k in (1, 2, 3)] == [4, 4, 4] and draw_steps("learned", 1) == 1
+    assert draw_steps("learned+2", 8) == 8 and learned_draws(8) == (2, 3)  # a run at 8 steps: 8-step draws
+    assert [draw_seed(f"learned+{k}") for k in (1, 2, 3)] == [0, 1, 2] and draw_seed("learned") == 0
+    assert source_names("auto", draws=(1, 2)) == ["learned", "learned+1", "learned+2", "classical"] + VOXELS
+    assert source_names("learned", draws=(2, 3)) == ["learned", "learned+2", "learned+3"]
+    assert source_names("oracle", fallback=True, draws=(1,))[:2] == ["oracle", "classical"]
+    assert source_names("classical", draws=(1,)) == ["classical"] + VOXELS
+    assert source_label("learned+1") == "learned (draw 2: 4 steps, seed +0)"
+    assert source_label("learned+3") == "learned (draw 4: 4 steps, seed +2)"
     # the second draw is a learned attempt: any of its errors hands the part on, like the first's
     assert leaves_source("learned+1", RuntimeError("CUDA error")) and not leaves_source("classical", KeyError("bug"))
     assert not leaves_source("learned+1", PartError("p.stl", "not closed"))
     attempt, calls = _scripted({"learned": _at(PolycubeError("genus 0, part 2"), "extract"),
                                 "learned+1": {"valid": True, "sj_min": 0.4}, "classical": {"valid": True}})
-    out = run_chain(source_names("auto", retry=True), attempt, min_sj=0.2)
+    out = run_chain(source_names("auto", draws=(1, 2)), attempt, min_sj=0.2)
     assert calls == ["learned", "learned+1"] and out.chosen.source == "learned+1"
     assert out.fallback_reason.startswith("learned polycube rejected at extract")
+    # the third draw only when the two before were both rejected before a mesh
+    attempt, calls = _scripted({"learned": _at(PolycubeError("cloud far"), "extract"),
+                                "learned+1": _at(PolycubeError("genus 1, part 2"), "extract"),
+                                "learned+2": {"valid": True, "sj_min": 0.5}, "classical": {"valid": True}})
+    out = run_chain(source_names("auto", draws=(1, 2)), attempt, min_sj=0.2)
+    assert calls == ["learned", "learned+1", "learned+2"] and out.chosen.source == "learned+2"
 
 
 def test_first_valid_mesh_is_kept_and_later_sources_are_not_tried():
