@@ -242,6 +242,10 @@ def test_a_growing_folder_is_reread_loading_only_the_new_shards(shards, tmp_path
     # anchor normals: the cached first shard's plus the new one's, as an uncached read computes them
     fresh = PairData(grow).anchor_normals
     assert np.array_equal(second.anchor_normals, fresh) and np.array_equal(fresh[:3], first_normals)
+    # each pair is held once: the cached shards are views of the arrays the training draws from
+    for d, lo in zip((cache[str((grow / f.name).resolve())] for f in files[:2]), (0, 3)):
+        assert np.shares_memory(d["cond_points"], second.cond) and np.array_equal(d["cond_points"], second.cond[lo:lo + 3])
+        assert np.shares_memory(d["anchor_normals"], second.anchor_normals)
     # subsampled points are distinct within a pair
     ci = tr._subsample(np.random.default_rng(0), 5, 128, 100)
     assert ci.shape == (5, 100) and all(len(set(row)) == 100 for row in ci)
