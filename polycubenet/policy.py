@@ -137,11 +137,12 @@ def source_config(source: str, config):
 
 def source_label(source: str) -> str:
     """How reasons name a source: ``voxel+2`` is "voxel (refinement 2)", ``voxel+3*``
-    "voxel (refinement 3, 1.5x hexes)", ``learned+2`` "learned (draw 3: 4 steps, seed +1)" (the steps of
-    :data:`LEARNED_DRAWS`; a run at more steps draws at its own)."""
+    "voxel (refinement 3, 1.5x hexes)", ``learned+1`` "learned (draw 2, 4 steps)", a draw with another seed
+    "learned (draw 3, 4 steps, seed +1)" (the steps of :data:`LEARNED_DRAWS`; a run at more steps draws at its own)."""
     base, k = refinement(source)
     if base == "learned" and k:
-        return f"learned (draw {k + 1}: {LEARNED_DRAWS[k - 1][0]} steps, seed +{draw_seed(source)})"
+        seed = f", seed +{draw_seed(source)}" if draw_seed(source) else ""
+        return f"learned (draw {k + 1}, {LEARNED_DRAWS[k - 1][0]} steps{seed})"
     if denser(source):
         return f"{base} (refinement {k}, {DENSER_HEXES:g}x hexes)"
     return f"{base} (refinement {k})" if k else source

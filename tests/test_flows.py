@@ -576,7 +576,7 @@ def test_learned_batches_then_classical_fallback(prefect_harness, part_lib, tiny
     assert good["status"] == "meshed" and good["provenance"] == "classical"
     # the first draw (2 steps) was rejected, then the model's second draw at 4 steps (the policy), then classical
     assert good["fallback"].startswith("learned polycube rejected")
-    assert "learned (second draw, 4 steps) polycube rejected" in good["fallback"]
+    assert "learned (draw 2, 4 steps) polycube rejected" in good["fallback"]
     assert wrong["status"] == "failed" and wrong["stage"] == "polycube" and "no voxel polycube" in wrong["error"]
     assert wrong["fallback"].startswith("learned polycube rejected")
     assert "classical polycube rejected at extract" in wrong["fallback"] and "genus" in wrong["fallback"]

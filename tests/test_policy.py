@@ -89,8 +89,8 @@ def test_the_models_further_draws_follow_the_first(monkeypatch):
     assert source_names("learned", draws=(2, 3)) == ["learned", "learned+2", "learned+3"]
     assert source_names("oracle", fallback=True, draws=(1,))[:2] == ["oracle", "classical"]
     assert source_names("classical", draws=(1,)) == ["classical"] + VOXELS
-    assert source_label("learned+1") == "learned (draw 2: 4 steps, seed +0)"
-    assert source_label("learned+3") == "learned (draw 4: 4 steps, seed +2)"
+    assert source_label("learned+1") == "learned (draw 2, 4 steps)"
+    assert source_label("learned+3") == "learned (draw 4, 4 steps, seed +2)"
     # the second draw is a learned attempt: any of its errors hands the part on, like the first's
     assert leaves_source("learned+1", RuntimeError("CUDA error")) and not leaves_source("classical", KeyError("bug"))
     assert not leaves_source("learned+1", PartError("p.stl", "not closed"))
