@@ -11,7 +11,7 @@ For each part it runs the learned source exactly as ``mesh_part`` does (the ship
 checkpoint, its default steps, 4096 learned points): generate, outlier filter, structure
 extraction with the part's genus; ``--mesh`` also meshes every part (and the examples) through
 the learned source alone as ``mesh_part`` runs it (first draw, then the model's second draw:
-``polycubenet.policy.learned_retry``) and counts the valid meshes within the Hausdorff bar, and
+``polycubenet.policy.LEARNED_DRAWS``) and counts the valid meshes within the Hausdorff bar, and
 how many of them the first draw gave.  Prints one row per part and the accepted fraction,
 beside the same measure on the 10 example parts; writes the JSON.
 """
