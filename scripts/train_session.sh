@@ -10,9 +10,10 @@
 #    run's last.pt) with the recipe recorded in the committed one, into $RUN (default
 #    /work/run-session), stopping cleanly after MINUTES, on $DATA/mix: links to every training shard;
 # 3. meanwhile, one more process makes the further training sets ($SETS: folder, link prefix, seed and
-#    synth flags of each; by default seed 4, 8192 pairs; seed 5, 8192 pairs with --cad-features: round
-#    bosses, slanted ends) and links each finished shard into $DATA/mix, where the training picks it up
-#    (--reload-every 200), so training starts after the first set only;
+#    synth flags of each; by default seed 4; seed 5 with --cad-features: round bosses, an edge's slanted
+#    chamfer; seed 6 also --whole-slants: a whole end cut by a slanted plane; seed 10 also --max-strength
+#    0.35: machined-like, mild global maps; 8192 pairs each) and links each finished shard into $DATA/mix,
+#    where the training picks it up (--reload-every 200), so training starts after the first set only;
 # 4. publish and commit with:   scripts/publish_checkpoint.sh $RUN 1
 # Re-running the same command resumes $RUN/last.pt.  Logs: $RUN/train.out, $RUN/data.out.
 set -euo pipefail
@@ -48,7 +49,9 @@ setsid nohup bash -c "
       --seed $SEED --reload-every 200 --ckpt-every 100 --log-every 50 --no-progress --max-minutes $MINUTES
 " > "$RUN/train.out" 2>&1 &
 # the further sets: "FOLDER PREFIX SEED [synth flags]" separated by ';' (8192 pairs each)
-SETS=${SETS:-"train4 1 4; train5cad 2 5 --cad-features"}
+D_SETS="train4 1 4; train5cad 2 5 --cad-features; train6ws 6 6 --cad-features --whole-slants"
+D_SETS="$D_SETS; train10m 7 10 --cad-features --whole-slants --max-strength 0.35"
+SETS=${SETS:-$D_SETS}
 LINKS="" MAKE=""
 IFS=';' read -ra _sets <<< "$SETS"
 for spec in "${_sets[@]}"; do
