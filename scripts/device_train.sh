@@ -14,7 +14,9 @@
 # 2 x 16384 uniform-sampled pairs in ~270 s (Poisson-disk ones will take longer: the numpy elimination);
 # the training is CPU-bound (batch building; GPU ~1 % busy) at ~5 steps/s of 128.
 #
-# The data: seed 8 (plain) and seed 9 (--cad-features), 16384 pairs each, made shard by shard and linked into
+# The data: two fresh sets (SEEDS; synth flags FLAGS1, default none, and FLAGS2, default --cad-features
+# --whole-slants: round bosses, slanted ends, whole ends cut by slanted planes), COUNT pairs each, made shard by
+# shard and linked into
 # $D/mix, which the training re-reads every 200 steps (each shard's arrays are loaded once). The recipe: the
 # shipped checkpoint's, with a GPU-sized batch (BATCH, default 128) and a cosine from LR to ~1e-5 that
 # --fit-steps fits to the time given. Bring the exported last.pt back, then here:
@@ -26,7 +28,9 @@ PY=${PY:-python3}
 BATCH=${BATCH:-128}
 LR=${LR:-3e-4}
 MIN_LR_RATIO=${MIN_LR_RATIO:-0.033}
-SEEDS=${SEEDS:-8 9}  # the generator seeds of the two fresh sets (plain, --cad-features): new ones each lease
+SEEDS=${SEEDS:-8 9}  # the generator seeds of the two fresh sets (FLAGS1, FLAGS2): new ones each lease
+FLAGS1=${FLAGS1:-}  # synth flags of the first set (e.g. "--cad-features --whole-slants --max-strength 0.35")
+FLAGS2=${FLAGS2:---cad-features --whole-slants}  # of the second (session 11 used --cad-features alone)
 COUNT=${COUNT:-16384}  # pairs per set (the training uses what exists so far)
 CKPT=polycubenet/checkpoints/polycubenet-cpu.pt  # its recipe is the run's
 INIT=${INIT:-$CKPT}  # the weights the run starts from, e.g. the committed continue file
@@ -40,8 +44,8 @@ start)
   # (the same points, ~5x slower; session 7 ran before it existed, with --sampler uniform)
   SYNTH="$PY -m polycubenet.synth --n-cond 2048 --n-target 2048 --no-progress ${SAMPLER:+--sampler $SAMPLER}"
   read -r S1 S2 <<< "$SEEDS"
-  [ -n "${NOGEN:-}" ] || setsid nohup $SYNTH --out "$D/g$S1" --count "$COUNT" --seed "$S1" --workers 7 > "$D/g$S1.out" 2>&1 &
-  [ -n "${NOGEN:-}" ] || setsid nohup $SYNTH --out "$D/g$S2" --count "$COUNT" --seed "$S2" --workers 7 --cad-features > "$D/g$S2.out" 2>&1 &
+  [ -n "${NOGEN:-}" ] || setsid nohup $SYNTH --out "$D/g$S1" --count "$COUNT" --seed "$S1" --workers 7 $FLAGS1 > "$D/g$S1.out" 2>&1 &
+  [ -n "${NOGEN:-}" ] || setsid nohup $SYNTH --out "$D/g$S2" --count "$COUNT" --seed "$S2" --workers 7 $FLAGS2 > "$D/g$S2.out" 2>&1 &
   [ -n "${NOGEN:-}" ] || setsid nohup bash -c "while true; do for s in $S1 $S2; do for f in $D/g\$s/shard-*.npz; do [ -e \$f ] || continue;
       b=\$(basename \$f); [ -e $D/mix/shard-\$s\${b#shard-} ] || ln -s \$f $D/mix/shard-\$s\${b#shard-}; done; done;
       sleep 5; done" > /dev/null 2>&1 &
