@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 from pathlib import Path
 
 import numpy as np
@@ -367,6 +368,20 @@ def test_shards_are_byte_for_byte_reproducible(tmp_path):
     assert _sha(tmp_path / "a" / "dataset.json") == _sha(tmp_path / "b" / "dataset.json")
     assert _sha(a[0]) != _sha(c[0])
 
+
+
+def test_max_strength_is_recorded_and_regenerated(tmp_path):
+    """``--max-strength``: in the manifest and each shard's parameters, so a shard's pair rebuilds with the
+    cap (no global map at 0); a set made without it keeps its manifest (the parameter's default)."""
+    rc = synth_main(["--out", str(tmp_path), "--count", "2", "--seed", "6", "--per-shard", "2", "--n-cond", "40",
+                     "--n-target", "40", "--cad-features", "--max-strength", "0", "--no-progress"])
+    assert rc == 0
+    assert json.loads((tmp_path / "dataset.json").read_text())["params"]["max_strength"] == 0.0
+    shard = load_shard(tmp_path / "shard-00000.npz")
+    for k, rec in enumerate(shard):
+        again = shard.regenerate(k)
+        assert rec["meta"]["deformation"] == again.deformation.to_dict()
+        assert not {"ramp", "taper", "shear", "twist", "bend", "ffd"} & set(again.deformation.kinds)
 
 def test_shard_contents_and_loader(tmp_path):
     rc = synth_main(["--out", str(tmp_path), "--count", "3", "--seed", "4", "--per-shard", "3",
