@@ -35,15 +35,33 @@ from polycubenet.atomic import write_json  # noqa: E402
 from polycubenet.evaluate import evaluate, rejection_category  # noqa: E402
 
 
+def learned_cloud(loaded, V, F, sample, n_out: int, steps: int, seed: int = 0) -> np.ndarray:
+    """The model's cloud ``(n_out, 6)`` for a part in its canonical frame ``(V, F)`` with its samples,
+    at noise ``seed``, with the anchors the learned source draws (``ModelSource``)."""
+    from polycubenet.inference import generate, model_anchors
+
+    a = model_anchors(loaded, V, F, n_out, seed)
+    (cloud,) = generate([sample.points], n_out, model=loaded, steps=steps, seed=seed, device="cpu",
+                        anchors=None if a is None else [a])
+    return cloud
+
+
+def extract_cloud(cloud: np.ndarray, genus: int, name: str):
+    """The pipeline's outlier filter and structure extraction with the part's genus (raises PolycubeError)."""
+    from polycubenet.cleanup import remove_outliers
+    from polycubenet.structure import extract
+
+    P, N, _ = remove_outliers(cloud[:, :3].astype(float), cloud[:, 3:].astype(float))
+    return extract(P, N, genus=genus, part=name)
+
+
 def part_rows(checkpoint, parts: list[Path], n_out: int, steps: int, n_sample: int = 4096) -> tuple[list, dict]:
     """Generate and extract for each real part; returns the rows and the clouds for the figure."""
-    from polycubenet.cleanup import remove_outliers
     from polycubenet.errors import PolycubeError
     from polycubenet.frame import canonicalize
-    from polycubenet.inference import generate, load_model, model_anchors
+    from polycubenet.inference import load_model
     from polycubenet.io import load_part
     from polycubenet.sampling import poisson_disk
-    from polycubenet.structure import extract
 
     loaded = load_model(checkpoint, "cpu")
     rows, clouds = [], {}
@@ -52,15 +70,12 @@ def part_rows(checkpoint, parts: list[Path], n_out: int, steps: int, n_sample: i
         Vc, _ = canonicalize(part.vertices, part.faces)
         sample = poisson_disk(Vc, part.faces, n_sample, seed=0)
         t0 = time.perf_counter()
-        a = model_anchors(loaded, Vc, part.faces, n_out, 0)
-        anchors = None if a is None else [a]
-        (cloud,) = generate([sample.points], n_out, model=loaded, steps=steps, seed=0, device="cpu", anchors=anchors)
+        cloud = learned_cloud(loaded, Vc, part.faces, sample, n_out, steps)
         t_gen = time.perf_counter() - t0
         genus = int(part.meta["genus"])
         row = {"part": path.stem, "genus": genus, "gen_seconds": round(t_gen, 2)}
         try:
-            P, N, _ = remove_outliers(cloud[:, :3].astype(float), cloud[:, 3:].astype(float))
-            poly = extract(P, N, genus=genus, part=path.stem)
+            poly = extract_cloud(cloud, genus, path.stem)
             row.update(accepted=True, error=None, category="accepted", grid=list(poly.occupancy.shape))
         except PolycubeError as exc:
             row.update(accepted=False, error=str(exc), category=rejection_category(str(exc)))

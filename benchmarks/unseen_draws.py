@@ -31,13 +31,12 @@ FEATURES = ("round boss", "round hole", "slanted")
 
 def draw_parts(checkpoint: str, parts: list[tuple[Path, str]], draws: int) -> list[dict]:
     """One row per part: ``part``, ``shape`` (its description) and ``accepted`` (one bool per draw)."""
-    from polycubenet.cleanup import remove_outliers
+    from model_failures import extract_cloud, learned_cloud
     from polycubenet.errors import PolycubeError
     from polycubenet.frame import canonicalize
-    from polycubenet.inference import generate, load_model, model_anchors, resolve_steps
+    from polycubenet.inference import load_model, resolve_steps
     from polycubenet.io import load_part
     from polycubenet.sampling import poisson_disk
-    from polycubenet.structure import extract
 
     loaded = load_model(checkpoint, "cpu")
     steps = resolve_steps(None, "cpu", loaded)[1]
@@ -48,12 +47,9 @@ def draw_parts(checkpoint: str, parts: list[tuple[Path, str]], draws: int) -> li
         sample = poisson_disk(V, part.faces, 4096, seed=0)
         ok = []
         for s in range(draws):
-            a = model_anchors(loaded, V, part.faces, 4096, s)
-            (cloud,) = generate([sample.points], 4096, model=loaded, steps=steps, seed=s, device="cpu",
-                                anchors=None if a is None else [a])
-            P, N, _ = remove_outliers(cloud[:, :3].astype(float), cloud[:, 3:].astype(float))
+            cloud = learned_cloud(loaded, V, part.faces, sample, 4096, steps, seed=s)
             try:
-                extract(P, N, genus=int(part.meta["genus"]), part=path.stem)
+                extract_cloud(cloud, int(part.meta["genus"]), path.stem)
                 ok.append(True)
             except PolycubeError:
                 ok.append(False)
