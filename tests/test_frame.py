@@ -72,3 +72,22 @@ def test_rejects_bad_input():
         canonicalize(np.zeros((4, 3)), np.array([[0, 1, 2], [0, 2, 3]]))
     with pytest.raises(ValueError, match=r"\(N, 3\)"):
         canonicalize(np.zeros((4, 2)), np.array([[0, 1, 2]]))
+
+
+@pytest.mark.parametrize("deg", [18.0, 23.0])
+def test_a_slanted_end_within_the_first_cone_does_not_tilt_the_frame(deg):
+    """A 3 x 2 x 1 block whose end is cut by a face ``deg`` degrees off the end face: the slanted face
+    lies inside the first alignment cone (25 degrees) and pulls the rotation with its area; the tighter
+    cones that follow leave it out, so the block's own faces come back aligned to 0.05 degrees."""
+    import trimesh
+
+    top = 3.0 - 1.0 * np.tan(np.radians(deg))
+    xz = [(0.0, 0.0), (3.0, 0.0), (top, 1.0), (0.0, 1.0)]
+    m = trimesh.convex.convex_hull(np.array([(x, y, z) for x, z in xz for y in (0.0, 2.0)]))
+    V, F = np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
+    R = Rotation.random(random_state=7).as_matrix()
+    Vc, _ = canonicalize(V @ R.T, F)
+    n, a = face_normals_areas(Vc, F)
+    ang = np.degrees(np.arccos(np.clip(np.abs(n).max(axis=1), -1.0, 1.0)))
+    block_faces = ang < deg / 2  # every face but the slanted one
+    assert block_faces.sum() >= 8 and ang[block_faces].max() < 0.05

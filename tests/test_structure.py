@@ -146,3 +146,45 @@ def test_plane_offset_tells_displaced_planes_from_other_cells():
     other = occ.copy()
     other[1, 0, 1] = True  # the full block
     assert plane_offset(a, Polycube(a.xs, a.ys, a.zs, other)) is None
+
+
+def _slanted_block(deg: float, seed: int):
+    """A 0.8 x 0.3 x 0.2 block whose -x end is one face slanted ``deg`` degrees from upright over the
+    whole height, sampled with 4096 points whose normals are snapped to their nearest axis, as the
+    model generates them: the slanted face is a ramp of -x (or +z) points."""
+    import trimesh
+
+    top = -0.4 + 0.2 * np.tan(np.radians(deg))
+    xz = [(-0.4, -0.1), (0.4, -0.1), (0.4, 0.1), (top, 0.1)]
+    m = trimesh.convex.convex_hull(np.array([(x, y, z) for x, z in xz for y in (-0.15, 0.15)])).subdivide()
+    s = poisson_disk(np.asarray(m.vertices), np.asarray(m.faces), 4096, seed=seed)
+    k = np.argmax(np.abs(s.normals), axis=1)
+    N = np.zeros_like(s.normals)
+    N[np.arange(len(N)), k] = np.sign(s.normals[np.arange(len(N)), k])
+    return s.points, N
+
+
+@pytest.mark.parametrize("deg,seed", [(35, 1), (40, 0), (45, 2)])
+def test_extract_flattens_a_slanted_end_into_the_end_face(deg, seed):
+    """Without flattening, the ramp's points cluster into thin planes at many x and the cloud is far
+    from every polycube the vote makes; flattened, the ramp is the block's end face and the polycube one
+    box, whose -x plane lies within the ramp (between the slant's foot at x = -0.4 and its top)."""
+    P, N = _slanted_block(deg, seed)
+    with pytest.raises(PolycubeError, match="far from the extracted polycube"):
+        extract(P, N, genus=0, config=ExtractConfig(ramp_min_deg=None))
+    got = extract(P, N, genus=0)
+    assert got.occupancy.shape == (1, 1, 1) and got.occupancy.all()
+    top = -0.4 + 0.2 * np.tan(np.radians(deg))
+    assert -0.41 < got.xs[0] < top and abs(got.xs[1] - 0.4) < 0.01
+    assert abs(got.zs[0] + 0.1) < 0.01 and abs(got.zs[1] - 0.1) < 0.01
+    assert "ramp(s)" in got.meta["ramps"]
+
+
+def test_flatten_ramps_leaves_axis_faces_and_steps_alone():
+    """An L-block's cloud (two parallel -z faces a step apart, edges between faces) has no ramp."""
+    from polycubenet.structure import axis_labels, flatten_ramps, point_spacing
+
+    P, N = _cloud(_l_block(), 4096, 0.002, 0.0, seed=4)
+    axis, sign = axis_labels(N)
+    flat, n_ramps, n_moved = flatten_ramps(P, axis, sign, point_spacing(P))
+    assert n_ramps == 0 and n_moved == 0 and np.array_equal(flat, P)
