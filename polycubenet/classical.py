@@ -1043,13 +1043,17 @@ class ClassicalSource:
 
     @staticmethod
     def _extracts(points, normals, genus, config) -> bool:
-        """Whether the pipeline's cleanup + structure extraction accept this cloud."""
+        """Whether the pipeline's cleanup + structure extraction accept this cloud, without the
+        fallbacks meant for generated clouds (flattened ramps, a wider kernel): where only those would
+        accept it, the planes are too close and get spaced apart, as before they existed."""
         from .cleanup import remove_outliers
         from .structure import ExtractConfig, extract
 
         P, N, _ = remove_outliers(points, normals)
+        cfg = dataclasses.replace(getattr(config, "extract", ExtractConfig()), ramp_min_deg=None,
+                                  wide_bandwidth_spacings=None)
         try:
-            extract(P, N, genus=genus, config=getattr(config, "extract", ExtractConfig()))
+            extract(P, N, genus=genus, config=cfg)
         except PolycubeError:
             return False
         return True
