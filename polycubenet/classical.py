@@ -1050,8 +1050,7 @@ class ClassicalSource:
         from .structure import ExtractConfig, extract
 
         P, N, _ = remove_outliers(points, normals)
-        cfg = dataclasses.replace(getattr(config, "extract", ExtractConfig()), ramp_min_deg=None,
-                                  wide_bandwidth_spacings=None)
+        cfg = getattr(config, "extract", ExtractConfig()).for_exact_clouds()
         try:
             extract(P, N, genus=genus, config=cfg)
         except PolycubeError:

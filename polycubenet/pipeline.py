@@ -367,13 +367,16 @@ def cloud_polycube(cloud: PolycubeCloud, P: np.ndarray, N: np.ndarray, genus: in
     """The explicit polycube of a source's cloud (both drivers call this): the solid the source
     built it from when the cloud carries it (the voxel polycube, ``ClassicalCloud.exact_polycube``),
     checked to be a valid polycube of the part's genus; otherwise the structure extraction of the
-    filtered cloud ``(P, N)``.  A generated (learned) cloud is always extracted.  Raises
+    filtered cloud ``(P, N)``.  A generated (learned) cloud is always extracted, and only it with the
+    extraction's fallbacks for generated clouds.  Raises
     :class:`~polycubenet.errors.PolycubeError`."""
     from .polycube import check_occupancy, compress, solid_genus
 
     exact = cloud.exact_polycube() if hasattr(cloud, "exact_polycube") else None
-    if exact is None or cloud.meta.get("provenance") == "learned":
+    if cloud.meta.get("provenance") == "learned":
         poly = extract(P, N, genus=genus, config=config.extract, part=name)
+    elif exact is None:  # the classical flattening's cloud: no generator fallbacks (ExtractConfig.for_exact_clouds)
+        poly = extract(P, N, genus=genus, config=config.extract.for_exact_clouds(), part=name)
     else:
         grid, occ = compress([exact.xs, exact.ys, exact.zs], exact.occupancy)
         reason = check_occupancy(occ)

@@ -104,6 +104,13 @@ class ExtractConfig:
     repair_flips: int = 64
 
 
+    def for_exact_clouds(self) -> "ExtractConfig":
+        """This config without the fallbacks meant for generated clouds (flattened ramps, the wide
+        kernel): for clouds sampled from an exact polycube surface (the classical flattening), whose
+        failures say the planes are too close, not that the cloud is a generator's."""
+        return dataclasses.replace(self, ramp_min_deg=None, wide_bandwidth_spacings=None)
+
+
 @dataclasses.dataclass
 class _Evidence:
     """Votes per grid face: ``plus[a]``/``minus[a]`` have shape of the face array along axis ``a``."""

@@ -188,3 +188,16 @@ def test_flatten_ramps_leaves_axis_faces_and_steps_alone():
     axis, sign = axis_labels(N)
     flat, n_ramps, n_moved = flatten_ramps(P, axis, sign, point_spacing(P))
     assert n_ramps == 0 and n_moved == 0 and np.array_equal(flat, P)
+
+
+def test_only_a_generated_cloud_gets_the_generator_fallbacks():
+    """The pipeline extracts a learned cloud with the fallbacks, a classical flattening's cloud without
+    them: the same slanted-end cloud gives a box as ``learned`` and is rejected as ``classical``."""
+    from polycubenet.data import PolycubeCloud
+    from polycubenet.pipeline import PipelineConfig, cloud_polycube
+
+    P, N = _slanted_block(40, 0)
+    learned = cloud_polycube(PolycubeCloud(P, N, meta={"provenance": "learned"}), P, N, 0, PipelineConfig(), "part")
+    assert learned.occupancy.shape == (1, 1, 1) and learned.meta["provenance"] == "learned"
+    with pytest.raises(PolycubeError, match="far from the extracted polycube"):
+        cloud_polycube(PolycubeCloud(P, N, meta={"provenance": "classical"}), P, N, 0, PipelineConfig(), "part")
