@@ -46,13 +46,14 @@ def learned_cloud(loaded, V, F, sample, n_out: int, steps: int, seed: int = 0) -
     return cloud
 
 
-def extract_cloud(cloud: np.ndarray, genus: int, name: str):
-    """The pipeline's outlier filter and structure extraction with the part's genus (raises PolycubeError)."""
+def extract_cloud(cloud: np.ndarray, genus: int, name: str, config=None):
+    """The pipeline's outlier filter and structure extraction with the part's genus (raises PolycubeError);
+    ``config``: an ``ExtractConfig`` (default: the pipeline's)."""
     from polycubenet.cleanup import remove_outliers
-    from polycubenet.structure import extract
+    from polycubenet.structure import ExtractConfig, extract
 
     P, N, _ = remove_outliers(cloud[:, :3].astype(float), cloud[:, 3:].astype(float))
-    return extract(P, N, genus=genus, part=name)
+    return extract(P, N, genus=genus, part=name, config=config or ExtractConfig())
 
 
 def part_rows(checkpoint, parts: list[Path], n_out: int, steps: int, n_sample: int = 4096) -> tuple[list, dict]:

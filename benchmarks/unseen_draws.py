@@ -29,7 +29,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 FEATURES = ("round boss", "round hole", "slanted")
 
 
-def draw_parts(checkpoint: str, parts: list[tuple[Path, str]], draws: int) -> list[dict]:
+def draw_parts(checkpoint: str, parts: list[tuple[Path, str]], draws: int, config=None) -> list[dict]:
     """One row per part: ``part``, ``shape`` (its description) and ``accepted`` (one bool per draw)."""
     from model_failures import extract_cloud, learned_cloud
     from polycubenet.errors import PolycubeError
@@ -49,7 +49,7 @@ def draw_parts(checkpoint: str, parts: list[tuple[Path, str]], draws: int) -> li
         for s in range(draws):
             cloud = learned_cloud(loaded, V, part.faces, sample, 4096, steps, seed=s)
             try:
-                extract_cloud(cloud, int(part.meta["genus"]), path.stem)
+                extract_cloud(cloud, int(part.meta["genus"]), path.stem, config)
                 ok.append(True)
             except PolycubeError:
                 ok.append(False)
@@ -81,8 +81,16 @@ def main(argv=None) -> int:
                     help="family:seed of each never-seen set")
     ap.add_argument("--count", type=int, default=16, help="parts per set")
     ap.add_argument("--draws", type=int, default=4, help="noise draws per part")
+    ap.add_argument("--fallbacks", action="store_true",
+                    help="extract with the generator fallbacks (structure.GENERATOR_FALLBACKS: flattened ramps, "
+                         "a wider kernel), off in the pipeline")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/unseen_draws.json"))
     args = ap.parse_args(argv)
+    import dataclasses
+
+    from polycubenet.structure import GENERATOR_FALLBACKS, ExtractConfig
+
+    config = dataclasses.replace(ExtractConfig(), **GENERATOR_FALLBACKS) if args.fallbacks else None
     names = args.names or [Path(c).stem for c in args.checkpoints]
     if len(names) != len(args.checkpoints):
         ap.error("--names needs one name per checkpoint")
@@ -95,10 +103,11 @@ def main(argv=None) -> int:
         sub = folder / spec.replace(":", "_")
         sub.mkdir(parents=True)
         sets[spec] = make_parts(sub, args.count, int(seed), family)
-    result = {"draws": args.draws, "count": args.count, "sets": list(sets), "checkpoints": {}}
+    result = {"draws": args.draws, "count": args.count, "sets": list(sets), "fallbacks": bool(args.fallbacks),
+              "checkpoints": {}}
     for name, ck in zip(names, args.checkpoints):
         t0 = time.perf_counter()
-        per_set = {spec: draw_parts(ck, parts, args.draws) for spec, parts in sets.items()}
+        per_set = {spec: draw_parts(ck, parts, args.draws, config) for spec, parts in sets.items()}
         every = [r for rows in per_set.values() for r in rows]
         result["checkpoints"][name] = {"checkpoint": ck, "seconds": round(time.perf_counter() - t0, 1),
                                        "sets": per_set, "features": by_feature(every)}

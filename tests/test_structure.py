@@ -171,8 +171,8 @@ def test_extract_flattens_a_slanted_end_into_the_end_face(deg, seed):
     box, whose -x plane lies within the ramp (between the slant's foot at x = -0.4 and its top)."""
     P, N = _slanted_block(deg, seed)
     with pytest.raises(PolycubeError, match="far from the extracted polycube"):
-        extract(P, N, genus=0, config=ExtractConfig(ramp_min_deg=None))
-    got = extract(P, N, genus=0)
+        extract(P, N, genus=0)  # the default: no fallbacks
+    got = extract(P, N, genus=0, config=ExtractConfig(ramp_min_deg=10.0))
     assert got.occupancy.shape == (1, 1, 1) and got.occupancy.all()
     top = -0.4 + 0.2 * np.tan(np.radians(deg))
     assert -0.41 < got.xs[0] < top and abs(got.xs[1] - 0.4) < 0.01
@@ -191,13 +191,18 @@ def test_flatten_ramps_leaves_axis_faces_and_steps_alone():
 
 
 def test_only_a_generated_cloud_gets_the_generator_fallbacks():
-    """The pipeline extracts a learned cloud with the fallbacks, a classical flattening's cloud without
-    them: the same slanted-end cloud gives a box as ``learned`` and is rejected as ``classical``."""
+    """With the fallbacks configured, the pipeline extracts a learned cloud with them, a classical
+    flattening's cloud without them: the same slanted-end cloud gives a box as ``learned`` and is
+    rejected as ``classical``."""
+    import dataclasses
+
     from polycubenet.data import PolycubeCloud
     from polycubenet.pipeline import PipelineConfig, cloud_polycube
+    from polycubenet.structure import GENERATOR_FALLBACKS
 
     P, N = _slanted_block(40, 0)
-    learned = cloud_polycube(PolycubeCloud(P, N, meta={"provenance": "learned"}), P, N, 0, PipelineConfig(), "part")
+    cfg = PipelineConfig(extract=dataclasses.replace(ExtractConfig(), **GENERATOR_FALLBACKS))
+    learned = cloud_polycube(PolycubeCloud(P, N, meta={"provenance": "learned"}), P, N, 0, cfg, "part")
     assert learned.occupancy.shape == (1, 1, 1) and learned.meta["provenance"] == "learned"
     with pytest.raises(PolycubeError, match="far from the extracted polycube"):
-        cloud_polycube(PolycubeCloud(P, N, meta={"provenance": "classical"}), P, N, 0, PipelineConfig(), "part")
+        cloud_polycube(PolycubeCloud(P, N, meta={"provenance": "classical"}), P, N, 0, cfg, "part")
