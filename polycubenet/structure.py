@@ -23,8 +23,9 @@ with noise.  :func:`extract` works in four steps:
    cavity), genus equal to the part's, the cloud within a tolerance of the polycube
    surface (Chamfer) and the surface covered by the cloud.
 
-A cloud that fails is tried once more with its ramps flattened (:func:`flatten_ramps`): sloped
-patches of points, a generated cloud's copy of a slanted face, moved onto the axis face they stand for.
+Optionally (``ExtractConfig.ramp_min_deg``, ``wide_bandwidth_spacings``; off by default, see there), a cloud
+that fails is tried again with its ramps flattened (:func:`flatten_ramps`: sloped patches of points, a
+generated cloud's copy of a slanted face, moved onto the axis face they stand for) and with a wider kernel.
 """
 
 from __future__ import annotations
@@ -83,8 +84,8 @@ class ExtractConfig:
     #: planar patches whose surface, fitted to the points' positions, is tilted at least this many
     #: degrees from their label's axis (None: never).  A generated cloud copies a machined part's
     #: slanted end as a ramp of points whose normals are axis-aligned; the clustering then cuts it into a
-    #: staircase of thin planes.  Flattened onto its outer extreme, the ramp becomes the end face it
-    #: stands for, as the classical labeling makes of a slanted face.  Off by default (None), with
+    #: staircase of thin planes.  Flattened to one coordinate within its extent (``ramp_depths``), the ramp
+    #: becomes the end face it stands for, as the classical labeling makes of a slanted face.  Off by default (None), with
     #: ``wide_bandwidth_spacings``: on never-seen mixed parts they lift acceptance at extraction (mixed
     #: seeds 11, 41, 31 and blocks 7, 4 draws each: 150 -> 212 of 256) but not the meshes (mixed seed 11
     #: 6 / 16, seed 31 4 / 16 valid within 1 %, as without them: the slanted ends they let through are
