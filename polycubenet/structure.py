@@ -197,7 +197,7 @@ def flatten_ramps(points: np.ndarray, axis: np.ndarray, sign: np.ndarray, spacin
                 continue
             R = Q[members]
             centre = R.mean(axis=0)
-            _, sv, vt = np.linalg.svd(R - centre, full_matrices=False)
+            vt = np.linalg.svd(R - centre, full_matrices=False)[2]
             m = vt[2]
             span = [np.subtract(*np.percentile((R - centre) @ vt[i], [95, 5])) for i in (0, 1)]
             if min(span) < min_extent_spacings * spacing:
@@ -538,20 +538,20 @@ def extract(
         raise ValueError(f"points and normals must both be (M, 3); got {points.shape} and {normals.shape}")
     if len(points) < 32:
         raise PolycubeError(f"too few points to extract a polycube ({len(points)})", part)
-    first = None
+    try:
+        return _extract_with_retries(points, normals, genus, config, part, validate)
+    except PolycubeError as err:
+        first = err
     wide = config.wide_bandwidth_spacings
-    for cfg in (config, None if wide is None else dataclasses.replace(config, min_bandwidth_spacings=wide)):
-        if cfg is None or (cfg is not config and wide <= config.min_bandwidth_spacings):
-            break
-        try:
-            poly = _extract_with_retries(points, normals, genus, cfg, part, validate)
-        except PolycubeError as err:
-            first = first or err
-            continue
-        if cfg is not config:
-            poly.meta["wide_bandwidth"] = f"kernel bandwidth >= {wide} spacings; at {config.min_bandwidth_spacings}: {first}"
-        return poly
-    raise first
+    if wide is None or wide <= config.min_bandwidth_spacings:
+        raise first
+    try:
+        poly = _extract_with_retries(points, normals, genus,
+                                     dataclasses.replace(config, min_bandwidth_spacings=wide), part, validate)
+    except PolycubeError:
+        raise first from None
+    poly.meta["wide_bandwidth"] = f"kernel bandwidth >= {wide} spacings; at {config.min_bandwidth_spacings}: {first}"
+    return poly
 
 
 def _extract_with_retries(points, normals, genus, config: ExtractConfig, part, validate) -> Polycube:
