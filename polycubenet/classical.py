@@ -229,10 +229,15 @@ def smooth_labels(
     edge_w: np.ndarray,
     sweeps: int,
     rng: np.random.Generator,
+    data: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Iterated conditional modes on fidelity + Potts (see the module docstring)."""
+    """Iterated conditional modes on fidelity + Potts (see the module docstring).
+
+    ``data`` ``(F, 6)``: the fidelity cost of each label on each face, when it is not the
+    normal's (:func:`normal_fidelity`; e.g. labels transferred from a learned polycube)."""
     labels = labels.copy()
-    data = (areas / areas.mean())[:, None] * (1.0 - normals @ DIRECTIONS.T)
+    if data is None:
+        data = normal_fidelity(normals, areas)
     P = _pair_cost(25.0)
     f0, f1 = edge_faces[:, 0], edge_faces[:, 1]
     n = len(labels)
@@ -247,6 +252,11 @@ def smooth_labels(
         move = want[rng.random(len(want)) < 0.5] if len(want) > 8 else want
         labels[move] = best[move]
     return labels
+
+
+def normal_fidelity(normals: np.ndarray, areas: np.ndarray) -> np.ndarray:
+    """``(F, 6)``: the labelling's fidelity cost, ``area * (1 - n . d_label)`` (areas relative to their mean)."""
+    return (areas / areas.mean())[:, None] * (1.0 - normals @ DIRECTIONS.T)
 
 
 def _edge_weights(V, F, edges, edge_faces, normals, config: ClassicalConfig) -> np.ndarray:
@@ -278,10 +288,12 @@ def repair_labels(
     edge_w: np.ndarray,
     config: ClassicalConfig,
     rng: np.random.Generator,
+    data: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict]:
     """Merge charts that cannot be polycube faces and separate opposite labels.
 
-    Returns the repaired labels and counts of what was done.
+    ``data``: the fidelity cost of :func:`smooth_labels` (None: the normals').  Returns the
+    repaired labels and counts of what was done.
     """
     labels = labels.copy()
     edge_len = np.linalg.norm(V[edges[:, 0]] - V[edges[:, 1]], axis=1)
@@ -339,7 +351,7 @@ def repair_labels(
             changed = True
         if not changed:
             break
-        labels = smooth_labels(labels, normals, areas, edge_faces, edge_w, 3, rng)
+        labels = smooth_labels(labels, normals, areas, edge_faces, edge_w, 3, rng, data)
     return labels, {"merged_charts": merged, "relabelled_faces": relabelled}
 
 
@@ -921,24 +933,7 @@ def _flatten(V: np.ndarray, F: np.ndarray, config: ClassicalConfig, seed: int):
             cfg = dataclasses.replace(cfg, compactness=cfg.compactness * 2.0)
             continue
         seen.append((labels, len(attempts)))
-        Vs, Fs, ls = V, F, labels
-        t_ref = t_def = 0.0
-        kept = None
-        for fix in range(config.fix_rounds + 1):
-            ta = time.perf_counter()
-            Vs, Fs, ls, _ = split_constrained_edges(Vs, Fs, ls)
-            tb = time.perf_counter()
-            Vp, dmeta = deform_to_polycube(Vs, Fs, ls, cfg)
-            tc = time.perf_counter()
-            t_ref += tb - ta
-            t_def += tc - tb
-            if kept is not None and dmeta["flipped"] >= kept[4]["flipped"]:
-                break  # the relabelling did not help: keep the previous flattening
-            kept = (Vp, Vs, Fs, ls, dmeta, fix)
-            if dmeta["flipped"] == 0 or fix == config.fix_rounds:
-                break
-            ls = relabel_flipped(Vs, Fs, ls, flipped_faces(Vp, Fs, ls))
-        Vp, Vs, Fs, ls, dmeta, fix = kept
+        Vp, Vs, Fs, ls, dmeta, fix, t_ref, t_def = flatten_labelled(V, F, labels, cfg)
         issues = label_issues(Vs, Fs, ls)
         info = {
             "compactness": cfg.compactness, **rep, **issues, **dmeta, "fix_rounds": fix,
@@ -952,6 +947,31 @@ def _flatten(V: np.ndarray, F: np.ndarray, config: ClassicalConfig, seed: int):
             break
         cfg = dataclasses.replace(cfg, compactness=cfg.compactness * 2.0)
     return best, attempts
+
+
+def flatten_labelled(V: np.ndarray, F: np.ndarray, labels: np.ndarray, config: ClassicalConfig):
+    """Refine and flatten a labelled surface (steps 3-4): flipped triangles are relabelled
+    (:func:`relabel_flipped`) and the surface flattened again, up to ``config.fix_rounds`` times,
+    while that lowers the flips.  Returns ``(Vp, Vs, Fs, labels, deform meta, fix rounds,
+    seconds refining, seconds deforming)``."""
+    Vs, Fs, ls = V, F, labels
+    t_ref = t_def = 0.0
+    kept = None
+    for fix in range(config.fix_rounds + 1):
+        ta = time.perf_counter()
+        Vs, Fs, ls, _ = split_constrained_edges(Vs, Fs, ls)
+        tb = time.perf_counter()
+        Vp, dmeta = deform_to_polycube(Vs, Fs, ls, config)
+        tc = time.perf_counter()
+        t_ref += tb - ta
+        t_def += tc - tb
+        if kept is not None and dmeta["flipped"] >= kept[4]["flipped"]:
+            break  # the relabelling did not help: keep the previous flattening
+        kept = (Vp, Vs, Fs, ls, dmeta, fix)
+        if dmeta["flipped"] == 0 or fix == config.fix_rounds:
+            break
+        ls = relabel_flipped(Vs, Fs, ls, flipped_faces(Vp, Fs, ls))
+    return (*kept, t_ref, t_def)
 
 
 def classical_polycube(V: np.ndarray, F: np.ndarray, config: ClassicalConfig = ClassicalConfig(), seed: int = 0):

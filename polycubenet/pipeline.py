@@ -63,7 +63,7 @@ from .policy import MODES as POLYCUBE_MODES
 from .policy import Attempt, error_reason, invalid_mesh_reason, mesh_rank, refinement, run_chain, source_config, source_label, source_names  # noqa: F401
 from .pullback import PullbackConfig, pull_back, worth_retry
 from .quality import QualityReport, quality_report
-from .registration import align
+from .realise import RealiseConfig, register_learned
 from .sampling import poisson_disk, uniform_sample
 from .structure import ExtractConfig, check_genus, extract
 from .voxel import VoxelConfig
@@ -104,6 +104,7 @@ class PipelineConfig:
     classical: ClassicalConfig = ClassicalConfig()
     voxel: VoxelConfig = VoxelConfig()
     min_sj: float | None = 0.2
+    realise: RealiseConfig | None = RealiseConfig()
 
 
 #: the values of ``PipelineConfig.polycube`` (and of the command-line ``--polycube``): ``policy.MODES``
@@ -204,6 +205,8 @@ class PartResult:
             "genus": self.part_meta.get("genus"),
             "provenance": self.provenance or (self.cloud.meta.get("provenance") if self.cloud is not None else None),
             "fallback_reason": self.fallback_reason,
+            # a learned polycube: pulled back by its exact realisation or by the registration (polycubenet.realise)
+            "map": self.mesh.meta.get("map") if self.mesh is not None else None,
             "hexes": q.get("hex_count"),
             "sj_min": q.get("sj_min"),
             "sj_avg": q.get("sj_avg"),
@@ -291,20 +294,25 @@ def mesh_surface(
         def attempt(label: str, tracker) -> Attempt:
             clock.timings, clock.tracker = tracker.seconds, tracker
             cloud, P, N, poly = _polycube_stages(chain[label], sample, Vc, F, genus, config, name, clock, res)
+            exact = None
             with clock("register"):
                 if hasattr(cloud, "correspondence"):  # classical and voxel polycubes know their map exactly
                     corr = cloud.correspondence()
-                else:
-                    rng = np.random.default_rng(config.seed + 5)
-                    sub = rng.choice(len(P), size=min(config.n_register, len(P)), replace=False)
-                    corr = align(sample, P[sub], N[sub])
+                else:  # a learned polycube: realised exactly on the part when it can be, else registered
+                    exact, corr = register_learned(sample, P, N, poly, Vc, F, config.n_register, config.realise,
+                                                   seed=config.seed, part=name)
+            if exact is not None:  # the learned structure as the part has it (thin slabs collapsed)
+                poly = exact.polycube
             with clock("partition"):
                 mesh_pc = partition_polycube(poly, source_config(label, config))
             with clock("pullback"):
-                if hasattr(cloud, "correspondence"):
-                    mesh_c = _pull_back_classical(mesh_pc, corr, Vc, F, config, own_diagonal(Vc, T))
+                if hasattr(cloud, "correspondence") or exact is not None:
+                    mesh_c = _pull_back_classical(mesh_pc, exact.map if exact is not None else corr, Vc, F, config,
+                                                  own_diagonal(Vc, T))
                 else:
                     mesh_c = pull_back(mesh_pc, corr.map_points, Vc, F, config.pullback, own_diagonal(Vc, T))
+                if not hasattr(cloud, "correspondence"):
+                    mesh_c.meta["map"] = "exact (realised)" if exact is not None else corr.meta["map"]
             return Attempt(label, dict(mesh_c.meta), payload=(cloud, poly, mesh_c), seconds=tracker.seconds,
                            label=source_label(label))
 

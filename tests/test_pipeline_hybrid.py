@@ -88,7 +88,7 @@ class _Broken:
         return self.inner(sample, V, F, config)
 
 
-@pytest.mark.parametrize("where", ["generate", "register", "pullback"])
+@pytest.mark.parametrize("where", ["generate", "register", "realise", "pullback"])
 def test_auto_falls_back_on_any_error_of_the_learned_attempt(l_block_file, monkeypatch, where):
     """Not only a rejected polycube: any exception of the learned attempt (a model bug, CPD running out of
     memory, a pullback error) hands the part to the classical chain, and the reason names the stage."""
@@ -99,7 +99,13 @@ def test_auto_falls_back_on_any_error_of_the_learned_attempt(l_block_file, monke
     else:
         src = _Broken(inner=OracleSource(_l_truth(l_block_file)))
         if where == "register":
-            monkeypatch.setattr(pipeline, "align", lambda *a, **k: (_ for _ in ()).throw(MemoryError("CPD")))
+            from polycubenet import registration
+
+            monkeypatch.setattr(registration, "align", lambda *a, **k: (_ for _ in ()).throw(MemoryError("CPD")))
+        elif where == "realise":
+            from polycubenet import realise
+
+            monkeypatch.setattr(realise, "learned_map", lambda *a, **k: (_ for _ in ()).throw(ValueError("flattening")))
         else:
             real = pipeline.pull_back
 
@@ -110,11 +116,14 @@ def test_auto_falls_back_on_any_error_of_the_learned_attempt(l_block_file, monke
             monkeypatch.setattr(pipeline, "_pull_back_classical",
                                 lambda mesh_pc, corr, Vc, F, config, diagonal=None: real(mesh_pc, corr.map_points, Vc, F,
                                                                                          config.pullback, diagonal))
-    res = mesh_part(l_block_file, src, PipelineConfig(polycube="auto", **SMALL))
+    # pullback: the learned attempt without its exact realisation (which pulls back like the classical chain)
+    cfg = PipelineConfig(polycube="auto", **SMALL, **({"realise": None} if where == "pullback" else {}))
+    res = mesh_part(l_block_file, src, cfg)
     assert res.status == "meshed" and res.provenance == "classical" and res.report.to_dict()["valid"]
-    stage = {"generate": "polycube", "register": "register", "pullback": "pullback"}[where]
+    stage = {"generate": "polycube", "register": "register", "realise": "register", "pullback": "pullback"}[where]
     assert res.fallback_reason.startswith(f"learned polycube rejected at {stage}: ")
-    exc_name = {"generate": "RuntimeError", "register": "MemoryError", "pullback": "FloatingPointError"}[where]
+    exc_name = {"generate": "RuntimeError", "register": "MemoryError", "realise": "ValueError",
+                "pullback": "FloatingPointError"}[where]
     assert exc_name in res.fallback_reason
 
 

@@ -1,0 +1,289 @@
+"""The learned polycube's structure, realised exactly on the part through the classical deformation.
+
+The learned path maps its polycube onto the part by registration (rigid, then CPD): a smooth
+field that is close on the surface, not exact.  Where the part has a feature the polycube
+draws differently -- a slanted end (the polycube's end face is axis-aligned), a round boss --
+the field leaves the polycube's face where the cloud had it, and the pulled-back mesh misses
+the part by 1-4 % of its diagonal although the structure is right.
+
+:func:`realise` keeps the learned structure and replaces the map:
+
+1. **Labels from the learned polycube** (:func:`transfer_votes`).  The extracted polycube's
+   surface is sampled, every sample carries the label of its face (``2 * axis + (sign > 0)``)
+   and goes through the registration's map onto the part; every part triangle then holds the
+   share of each label among the mapped samples near it.  The labelling's fidelity cost
+   (:func:`label_cost`) is mostly that share; the triangle's normal only settles the borders
+   and forbids a label that faces away from it.
+2. **Clean-up and flattening**, the classical construction's own steps
+   (:mod:`polycubenet.classical`): Potts smoothing and chart repair with that cost, then the
+   as-rigid-as-possible flattening onto the labels' planes (:func:`classical.flatten_labelled`).
+3. **The same structure, or nothing.**  The solid that the flattened surface bounds
+   (:func:`classical.flat_structure`, planes closer than :data:`MERGE_REL` of the learned
+   polycube's smallest cell merged) must have exactly the learned polycube's minimal grid and
+   occupancy; otherwise :class:`~polycubenet.errors.PolycubeError` says how it differs and the
+   registration's map is used as before.  When it matches, each axis goes through the monotone
+   piecewise-linear map that sends the flattened planes onto the learned ones, so the flattened
+   surface *is* the learned polycube's surface, and :class:`~polycubenet.classical.SurfaceMap`
+   maps it exactly (barycentric) onto the part.
+
+Provenance stays honest: the structure (cells, planes, genus) is the generated cloud's, only the
+map onto the part is computed by the classical deformation; nothing of the classical labelling
+(the normals' own labels) or the voxel grid enters.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import time
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .classical import (
+    DIRECTIONS,
+    ClassicalConfig,
+    SurfaceMap,
+    _edge_weights,
+    decimate,
+    edge_topology,
+    flat_structure,
+    flatten_labelled,
+    repair_labels,
+    smooth_labels,
+)
+from .data import Polycube
+from .errors import PolycubeError
+from .frame import face_normals_areas
+from .polycube import compress, polycube_surface
+from .sampling import poisson_disk
+
+#: samples of the learned polycube's surface sent through the registration's map
+N_TRANSFER = 16384
+#: mapped samples consulted per part triangle
+K_TRANSFER = 12
+#: a slab of the learned polycube thinner than this (canonical frame, diagonal 1) may be collapsed to
+#: match the flattened part (:func:`match_structure`)
+THIN_SLAB = 0.03
+#: generated points registered (rigid + CPD) for the labels' transfer: the labels need a coarser map than a
+#: pull-back (examples and never-seen parts realised alike at 4096, 1024 and 512; CPD 2.4-4.0 s at 4096,
+#: 0.7-2.1 s at 1024); the full ``PipelineConfig.n_register`` is registered only when the realisation fails
+N_REGISTER = 1024
+#: weight of the normal's fidelity beside the transferred labels' share (which has weight 1)
+NORMAL_WEIGHT = 0.35
+#: flattened planes of one axis closer than this fraction of the learned polycube's smallest
+#: cell width are merged before the structures are compared
+MERGE_REL = 0.25
+
+
+@dataclasses.dataclass(frozen=True)
+class RealiseConfig:
+    """Parameters of :func:`realise` (the flattening's are ``classical``'s)."""
+
+    n_transfer: int = N_TRANSFER
+    k: int = K_TRANSFER
+    normal_weight: float = NORMAL_WEIGHT
+    merge_rel: float = MERGE_REL
+    thin_slab: float = THIN_SLAB
+    n_register: int = N_REGISTER
+    classical: ClassicalConfig = ClassicalConfig()
+
+
+@dataclasses.dataclass
+class Realised:
+    """:func:`realise`'s result: the exact map (``map_points`` like registration's) and the polycube it maps
+    from (the learned one, its thin slabs collapsed where the part has one plane)."""
+
+    map: SurfaceMap
+    polycube: Polycube
+
+    def map_points(self, points):
+        return self.map.map_points(points)
+
+
+def transfer_votes(V: np.ndarray, F: np.ndarray, poly, map_points, n: int = N_TRANSFER, k: int = K_TRANSFER,
+                   seed: int = 0) -> np.ndarray:
+    """``(F, 6)``: the share of each label among the learned polycube's surface samples that the
+    map (polycube domain -> part, e.g. ``Correspondence.map_points``) sends near each part triangle
+    (Gaussian weights at the samples' spacing; rows sum to 1)."""
+    Vq, Fq = polycube_surface(poly.xs, poly.ys, poly.zs, poly.occupancy)
+    s = poisson_disk(Vq, Fq, n, seed=seed)
+    nq, _ = face_normals_areas(Vq, Fq)
+    lab = np.argmax(nq[s.face_ids] @ DIRECTIONS.T, axis=1)
+    mapped = np.asarray(map_points(s.points), dtype=np.float64)
+    centroids = np.asarray(V, float)[np.asarray(F)].mean(axis=1)
+    kk = min(k, len(mapped))
+    d, idx = cKDTree(mapped).query(centroids, k=kk)
+    d, idx = d.reshape(len(centroids), kk), idx.reshape(len(centroids), kk)
+    h = max(float(np.median(d[:, 0])), 1e-9) * 2.0 + 1e-12
+    w = np.exp(-((d - d[:, :1]) / h) ** 2)  # relative to the nearest: a triangle far from every sample still votes
+    votes = np.zeros((len(centroids), 6))
+    np.add.at(votes, (np.repeat(np.arange(len(centroids)), kk), lab[idx].ravel()), w.ravel())
+    return votes / votes.sum(axis=1, keepdims=True)
+
+
+def label_cost(votes: np.ndarray, normals: np.ndarray, areas: np.ndarray, normal_weight: float = NORMAL_WEIGHT) -> np.ndarray:
+    """``(F, 6)`` fidelity cost: ``area * ((1 - share) + normal_weight * (1 - n . d))`` (areas relative
+    to their mean), and a label facing away from the triangle's normal (``n . d < 0``) costs 4 more."""
+    a = (areas / areas.mean())[:, None]
+    nd = normals @ DIRECTIONS.T
+    return a * ((1.0 - votes) + normal_weight * (1.0 - nd) + 4.0 * (nd < 0.0))
+
+
+def _merge_close(Xp: np.ndarray, F: np.ndarray, labels: np.ndarray, tol: float) -> np.ndarray:
+    """Chart planes of one axis closer than ``tol`` moved onto their group's mean (a thin slab the
+    flattening left between two faces that the learned polycube has on one plane)."""
+    X = np.array(Xp, dtype=np.float64, copy=True)
+    for a in range(3):
+        p = np.unique(X[F[labels // 2 == a, 0], a])
+        if len(p) < 2:
+            continue
+        group = np.concatenate([[0], np.cumsum(np.diff(p) > tol)])
+        q = np.array([p[group == g].mean() for g in range(group[-1] + 1)])[group]
+        if np.allclose(p, q):
+            continue
+        X[:, a] = np.interp(X[:, a], p, q)
+    return X
+
+
+def _collapses(a_planes: np.ndarray, b_planes: np.ndarray, thin: float, keep: int = 3) -> list[tuple[int, ...]]:
+    """Up to ``keep`` sets of slabs of ``b_planes`` thinner than ``thin`` whose collapse leaves as many
+    planes as ``a_planes``, the best aligned with them first (empty when none)."""
+    k = len(b_planes) - len(a_planes)
+    if k < 0:
+        return []
+    if k == 0:
+        return [()]
+    thin_slabs = np.flatnonzero(np.diff(b_planes) < thin)
+    if len(thin_slabs) < k or len(thin_slabs) > 12:
+        return []
+    scored = []
+    for sub in itertools.combinations(thin_slabs.tolist(), k):
+        q = _collapsed_planes(b_planes, sub)
+        scored.append((float(np.abs(q - a_planes).max()), sub))
+    scored.sort()
+    return [sub for _, sub in scored[:keep]]
+
+
+def _collapsed_planes(planes: np.ndarray, slabs) -> np.ndarray:
+    """The planes with each listed slab shrunk to one plane at its middle (adjacent ones chain)."""
+    q = np.asarray(planes, dtype=np.float64).copy()
+    for i in sorted(slabs):
+        q[i + 1] = q[i] = 0.5 * (q[i] + q[i + 1])
+    return np.delete(q, [i + 1 for i in sorted(slabs)])
+
+
+def match_structure(got_grid, got_occ, poly, thin: float = THIN_SLAB):
+    """The learned polycube ``poly``'s planes in the order of the solid ``(got_grid, got_occ)``'s minimal
+    grid, when the two are one structure: identical minimal grids and occupancies, or identical once
+    some of the learned polycube's slabs thinner than ``thin`` are collapsed (a face the generated
+    cloud drew a little thick, cut in two planes, which the part has as one).  Returns ``(got planes,
+    learned planes, collapsed slab count)``; raises :class:`~polycubenet.errors.PolycubeError` saying
+    how they differ otherwise."""
+    ga, oa = compress(list(got_grid), got_occ)
+    gb, ob = compress([poly.xs, poly.ys, poly.zs], poly.occupancy)
+    options = [_collapses(ga[a], gb[a], thin) for a in range(3)]
+    if not all(options):
+        raise PolycubeError(f"the flattened part bounds a {'x'.join(map(str, oa.shape))} grid, the learned polycube "
+                            f"{'x'.join(map(str, ob.shape))}")
+    worst = None
+    for subs in itertools.product(*options):
+        occ = ob
+        for a in range(3):
+            occ = np.delete(occ, list(subs[a]), axis=a)
+        if occ.shape == oa.shape and bool((occ == oa).all()):
+            planes = [_collapsed_planes(gb[a], subs[a]) for a in range(3)]
+            return ga, planes, int(sum(len(s) for s in subs))
+        if occ.shape == oa.shape:
+            worst = int((occ != oa).sum()) if worst is None else min(worst, int((occ != oa).sum()))
+    raise PolycubeError(f"{worst if worst is not None else 'the'} cells differ from the learned polycube's")
+
+
+def realise(V: np.ndarray, F: np.ndarray, poly, map_points, config: RealiseConfig = RealiseConfig(), seed: int = 0,
+            part: str | None = None) -> Realised:
+    """The exact map from the learned polycube ``poly`` onto the part ``(V, F)`` (canonical frame), its
+    labels taken through ``map_points`` (the registration's map); see the module docstring.
+
+    Returns a :class:`Realised`: the polycube (``poly``, its thin slabs collapsed where the part has one
+    plane: :func:`match_structure`) and a :class:`~polycubenet.classical.SurfaceMap` whose flattened
+    surface lies on that polycube's surface (``meta``: labels, flips, collapsed slabs, seconds).  Raises
+    :class:`~polycubenet.errors.PolycubeError` when the flattened part does not bound the learned structure.
+    """
+    t0 = time.perf_counter()
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    cc = config.classical
+    if len(F) > cc.max_faces:
+        dec = decimate(V, F, cc.max_faces)
+        if dec is not None:
+            V, F = dec
+    rng = np.random.default_rng(seed)
+    normals, areas = face_normals_areas(V, F)
+    edges, edge_faces = edge_topology(F)
+    votes = transfer_votes(V, F, poly, map_points, config.n_transfer, config.k, seed=seed + 41)
+    data = label_cost(votes, normals, areas, config.normal_weight)
+    labels = np.argmin(data, axis=1)
+    w = _edge_weights(V, F, edges, edge_faces, normals, cc)
+    labels = smooth_labels(labels, normals, areas, edge_faces, w, cc.smooth_sweeps, rng, data)
+    labels, rep = repair_labels(labels, V, F, normals, areas, edges, edge_faces, w, cc, rng, data)
+    t1 = time.perf_counter()
+    Xp, Vs, Fs, ls, dmeta, fix, _, _ = flatten_labelled(V, F, labels, cc)
+    cells = min(float(np.diff(g).min()) for g in (poly.xs, poly.ys, poly.zs))
+    Xp = _merge_close(Xp, Fs, ls, config.merge_rel * cells)
+    st = flat_structure(Xp, Fs, ls)
+    meta = {"merged_charts": rep["merged_charts"], "relabelled_faces": rep["relabelled_faces"],
+            "flipped": dmeta["flipped"], "fix_rounds": fix, "faces": int(len(Fs)),
+            "time_label": t1 - t0, "time_flatten": time.perf_counter() - t1}
+    if st["reason"] is not None:
+        raise PolycubeError(f"the part flattened on the learned labels is not a polycube ({st['reason']})", part)
+    try:
+        ga, gb, collapsed = match_structure(st["grid"], st["occupancy"], poly, config.thin_slab)
+    except PolycubeError as exc:
+        raise PolycubeError(f"the part flattened on the learned labels differs from the learned polycube: {exc.args[0]}",
+                            part) from None
+    # each axis: the flattened planes onto the learned ones (same count and order: the grids matched)
+    Y = np.array(Xp, copy=True)
+    for a in range(3):
+        Y[:, a] = np.interp(Xp[:, a], ga[a], gb[a])
+    _, occ = compress(list(st["grid"]), st["occupancy"])
+    meta.update(collapsed_slabs=collapsed, seconds=time.perf_counter() - t0)
+    realised = Polycube(gb[0], gb[1], gb[2], occ, meta={**poly.meta, "realised": True, "collapsed_slabs": collapsed})
+    return Realised(SurfaceMap(Y, Fs, Vs, meta={"method": "learned polycube, exact map by the classical deformation",
+                                                **meta}), realised)
+
+
+def learned_map(V: np.ndarray, F: np.ndarray, poly, corr, config: RealiseConfig | None, seed: int = 0,
+                part: str | None = None) -> tuple[Realised | None, str | None]:
+    """The map a learned polycube is pulled back with: :func:`realise`'s exact one when ``config`` is set
+    and the flattened part bounds the learned structure, else None and why (then the registration's
+    ``corr`` maps the polycube, as without realisation)."""
+    if config is None:
+        return None, "off"
+    try:
+        return realise(V, F, poly, corr.map_points, config, seed=seed, part=part), None
+    except PolycubeError as exc:
+        return None, str(exc.args[0] if exc.args else exc)
+
+
+def register_learned(sample, P: np.ndarray, N: np.ndarray, poly, V: np.ndarray, F: np.ndarray, n_register: int,
+                     config: RealiseConfig | None, seed: int = 0, part: str | None = None):
+    """The map of a learned polycube onto the part (both drivers call this): the registration of
+    ``config.n_register`` generated points, then :func:`learned_map`; when that fails (or ``config`` is
+    None), the registration of ``n_register`` points (``PipelineConfig.n_register``), whose ``meta["map"]``
+    says why.  Returns ``(Realised or None, Correspondence or None)``, one of them set."""
+    from .registration import align
+
+    def registered(n: int):
+        rng = np.random.default_rng(seed + 5)
+        sub = rng.choice(len(P), size=min(n, len(P)), replace=False)
+        return align(sample, P[sub], N[sub])
+
+    why = "off"
+    if config is not None:
+        coarse = registered(min(config.n_register, n_register))
+        exact, why = learned_map(V, F, poly, coarse, config, seed=seed, part=part)
+        if exact is not None:
+            return exact, None
+    corr = coarse if config is not None and config.n_register >= n_register else registered(n_register)
+    corr.meta["map"] = f"registration ({why})"
+    return None, corr

@@ -1,0 +1,106 @@
+"""The learned structure realised exactly on the part (``polycubenet.realise``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from polycubenet.data import Polycube
+from polycubenet.errors import PolycubeError
+from polycubenet.polycube import polycube_surface
+from polycubenet.realise import match_structure, realise
+from polycubenet.sampling import poisson_disk
+
+SLANT = 0.35  # the sheared end moves in x by SLANT * (height above the floor), canonical units
+
+
+def _l_polycube(Vc):
+    """The L-block's own polycube in the canonical frame of ``Vc`` (x in {0, 1, 3}, z in {0, 1, 2} before scaling)."""
+    lo, hi = Vc.min(axis=0), Vc.max(axis=0)
+    s = (hi[0] - lo[0]) / 3.0
+    xs, ys, zs = lo[0] + s * np.array([0.0, 1.0, 3.0]), lo[1] + s * np.array([0.0, 1.0]), lo[2] + s * np.array([0.0, 1.0, 2.0])
+    occ = np.zeros((2, 1, 2), dtype=bool)
+    occ[0, 0, :] = True
+    occ[1, 0, 0] = True
+    return Polycube(xs, ys, zs, occ)
+
+
+def _shear(lo, hi, s):
+    """Tilts the long arm's end face: x -= SLANT * (z - floor) near the end (a ramp in x, so every
+    face stays planar); the map from the L's polycube onto the sheared part."""
+    x1, x3 = lo[0] + s, hi[0]
+
+    def f(P):
+        P = np.array(P, dtype=np.float64, copy=True)
+        ramp = np.clip((P[:, 0] - x1) / (x3 - x1), 0.0, 1.0)
+        P[:, 0] -= SLANT * ramp * (P[:, 2] - lo[2])
+        return P
+
+    return f
+
+
+@pytest.fixture(scope="module")
+def slanted_l(l_block_canonical):
+    Vc, F = l_block_canonical
+    poly = _l_polycube(Vc)
+    lo, hi = Vc.min(axis=0), Vc.max(axis=0)
+    shear = _shear(lo, hi, (hi[0] - lo[0]) / 3.0)
+    return shear(Vc), F, poly, shear
+
+
+def _on_polycube(points, poly) -> float:
+    Vq, Fq = polycube_surface(poly.xs, poly.ys, poly.zs, poly.occupancy)
+    return float(trimesh.proximity.closest_point(trimesh.Trimesh(Vq, Fq, process=False), points)[1].max())
+
+
+def test_a_slanted_end_is_realised_exactly_on_the_learned_polycube(slanted_l):
+    V, F, poly, shear = slanted_l
+    got = realise(V, F, poly, shear)
+    assert got.map.meta["collapsed_slabs"] == 0
+    assert np.array_equal(got.polycube.occupancy, poly.occupancy)
+    # the flattened surface is the learned polycube's surface ...
+    assert _on_polycube(got.map.Vp, poly) < 1e-9
+    # ... and its points go exactly onto the part, also on the slanted end that the polycube has axis-aligned
+    s = poisson_disk(*polycube_surface(poly.xs, poly.ys, poly.zs, poly.occupancy), 3000, seed=3)
+    part = trimesh.Trimesh(V, F, process=False)
+    exact = trimesh.proximity.closest_point(part, got.map_points(s.points))[1]
+    assert exact.max() < 1e-6
+    end = s.points[:, 0] > poly.xs[-1] - 1e-9  # the polycube's end face: where the identity map misses the part
+    off = trimesh.proximity.closest_point(part, s.points[end])[1]
+    assert off.max() > 0.05
+
+
+def test_a_learned_polycube_of_another_structure_is_refused(slanted_l):
+    V, F, _, shear = slanted_l
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    box = Polycube(np.array([lo[0], hi[0]]), np.array([lo[1], hi[1]]), np.array([lo[2], hi[2]]), np.ones((1, 1, 1), bool))
+    with pytest.raises(PolycubeError, match="learned labels"):
+        realise(V, F, box, lambda P: np.asarray(P, float))
+
+
+def _bosses(top2: float):
+    """(x, z) section of a base with two bosses, the second's top at ``top2`` (y: one cell)."""
+    xs, ys = np.array([0.0, 0.3, 0.6, 0.9]), np.array([0.0, 0.4])
+    if top2 == 0.5:
+        zs = np.array([0.0, 0.2, 0.5])
+        occ = np.array([[1, 1], [1, 0], [1, 1]], bool)[:, None, :]
+    else:
+        zs = np.array([0.0, 0.2, 0.5, top2])
+        occ = np.array([[1, 1, 0], [1, 0, 0], [1, 1, 1]], bool)[:, None, :]
+    return xs, ys, zs, occ
+
+
+def test_a_thin_slab_of_the_learned_polycube_collapses_onto_the_part_plane_but_a_thick_one_does_not():
+    xs, ys, zs, occ = _bosses(0.5)  # the part: both bosses end at z = 0.5
+    for top2, ok in ((0.51, True), (0.6, False)):
+        lx, ly, lz, locc = _bosses(top2)  # the learned polycube draws the second boss a little higher
+        learned = Polycube(lx, ly, lz, locc)
+        if ok:
+            got, planes, collapsed = match_structure([xs, ys, zs], occ, learned)
+            assert collapsed == 1
+            np.testing.assert_allclose(planes[2], [0.0, 0.2, 0.505])
+            np.testing.assert_allclose(planes[0], xs)
+        else:
+            with pytest.raises(PolycubeError):
+                match_structure([xs, ys, zs], occ, learned)
