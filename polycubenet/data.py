@@ -127,6 +127,17 @@ class Polycube(_NpzRecord):
     def grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return self.xs, self.ys, self.zs
 
+    def to_meta(self) -> dict:
+        """The polycube as plain JSON values (to ride in another record's ``meta``; :meth:`from_meta`)."""
+        return {"xs": np.asarray(self.xs, float).tolist(), "ys": np.asarray(self.ys, float).tolist(),
+                "zs": np.asarray(self.zs, float).tolist(), "occupancy": np.asarray(self.occupancy, np.uint8).tolist(),
+                "meta": json.loads(json.dumps(self.meta, default=str))}
+
+    @classmethod
+    def from_meta(cls, d: dict) -> "Polycube":
+        return cls(np.asarray(d["xs"], float), np.asarray(d["ys"], float), np.asarray(d["zs"], float),
+                   np.asarray(d["occupancy"], bool), meta=dict(d.get("meta") or {}))
+
 
 @dataclasses.dataclass
 class HexMesh(_NpzRecord):

@@ -61,8 +61,8 @@ STAGE_VERSIONS = {
     "load_sample": "1",
     "polycube": "1",
     "extract": "4",  # 2: carries the classical exact map; 3: the voxel solid taken as built; 4: no plane refit
-    "register": "3",  # 2: the classical exact map replaces CPD; 3: a learned polycube realised exactly (realise.py)
-    "pullback": "3",  # 2: classical pullback as in pipeline.mesh_surface; 3: sj_terms by operators
+    "register": "2",  # 2: the classical exact map replaces CPD
+    "pullback": "4",  # 2: classical pullback as in pipeline.mesh_surface; 3: sj_terms by operators; 4: realise.py
     "export": "1",
 }
 #: stage names in pipeline order (what ``stage reached`` in the manifest refers to)
@@ -200,8 +200,9 @@ def stage_params(config: PipelineConfig, *, polycube: str = "oracle", polycube_e
         "polycube": {"source": polycube, "seed": config.seed, "extra": polycube_extra,
                      "n_points": config.n_learned if refinement(polycube)[0] == "learned" else config.n_polycube},
         "extract": {"extract": config.extract},
-        "register": {"n_register": config.n_register, "seed": config.seed, "realise": config.realise},
-        "pullback": {"target_hexes": hexes.target_hexes, "target_size": hexes.target_size, "pullback": config.pullback},
+        "register": {"n_register": config.n_register, "seed": config.seed},
+        "pullback": {"target_hexes": hexes.target_hexes, "target_size": hexes.target_size, "pullback": config.pullback,
+                     "realise": config.realise, "min_sj": config.min_sj},
         "export": {"formats": sorted(formats), "out": out_dir},
     }
 
@@ -467,65 +468,49 @@ def read_extracted(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, Pol
 
 
 def register(extracted: str | os.PathLike, loaded: str | os.PathLike, dest: str | os.PathLike, config: PipelineConfig) -> Path:
-    """Rigid + CPD registration of the cleaned cloud to the part sample (``registration.align``); a
-    learned polycube is then realised exactly when it can be (:func:`polycubenet.realise.learned_map`,
-    as in ``pipeline.mesh_surface``): the file carries that exact map and the realised polycube."""
-    from .realise import register_learned
+    """Rigid + CPD registration of the cleaned cloud to the part sample (``registration.align``)."""
+    from .registration import align
 
     arrays, _ = _load_arrays(extracted)
     if all(k in arrays for k in _EXACT_MAP):
         # the classical polycube knows its map to the part exactly: no registration
         return _save_arrays(dest, {"method": "classical exact map"}, **{k: arrays[k] for k in _EXACT_MAP})
-    P, N, poly, _ = read_extracted(extracted)
-    part, sample, _, meta = read_loaded(loaded)
-    exact, corr = register_learned(sample, P, N, poly, part.vertices, part.faces, config.n_register, config.realise,
-                                   seed=config.seed, part=meta["name"])
-    if exact is None:
-        return corr.save(dest)
-    m, q = exact.map, exact.polycube
-    return _save_arrays(dest, {"method": m.meta["method"], "map": "exact (realised)", "realise": m.meta,
-                               "polycube": q.meta},
-                        polycube_vertices=m.Vp, surface_vertices=m.V, surface_faces=m.F,
-                        realised_xs=q.xs, realised_ys=q.ys, realised_zs=q.zs, realised_occupancy=q.occupancy)
+    P, N, _, _ = read_extracted(extracted)
+    _, sample, _, _ = read_loaded(loaded)
+    rng = np.random.default_rng(config.seed + 5)
+    sub = rng.choice(len(P), size=min(config.n_register, len(P)), replace=False)
+    return align(sample, P[sub], N[sub]).save(dest)
 
 
 def partition_pullback(extracted: str | os.PathLike, corr: str | os.PathLike, loaded: str | os.PathLike,
                        dest: str | os.PathLike, config: PipelineConfig) -> Path:
     """Partition the polycube into hexes (at ``config``'s size: the source's own,
-    :func:`polycubenet.policy.source_config`) and pull them back onto the part (canonical frame)."""
-    from .pullback import pull_back
+    :func:`polycubenet.policy.source_config`) and pull them back onto the part (canonical frame); a learned
+    polycube as :func:`polycubenet.pipeline.pull_back_learned` does (realised exactly when the registration's
+    mesh would not end the chain; the file's meta then carries the realised polycube)."""
     from .registration import Correspondence
 
-    from .pipeline import own_diagonal, partition_polycube
+    from .pipeline import _pull_back_classical, own_diagonal, partition_polycube, pull_back_learned
 
-    part, _, T, _ = read_loaded(loaded)
+    _, _, poly, _ = read_extracted(extracted)
+    part, _, T, lmeta = read_loaded(loaded)
     diagonal = own_diagonal(part.vertices, T)
-    poly = read_polycube(extracted, corr)
-    mesh_pc = partition_polycube(poly, config)
-    arrays, cmeta = _load_arrays(corr)
-    if all(k in arrays for k in _EXACT_MAP):  # classical or realised: the same pullback as pipeline.mesh_surface
-        from .pipeline import _pull_back_classical
-
-        mesh = _pull_back_classical(mesh_pc, _surface_map(arrays), part.vertices, part.faces, config, diagonal)
-    else:
-        c = Correspondence.load(corr)
-        cmeta = c.meta
-        mesh = pull_back(mesh_pc, c.map_points, part.vertices, part.faces, config.pullback, diagonal)
-    if "map" in cmeta:  # a learned polycube: which map pulled it back
-        mesh.meta["map"] = cmeta["map"]
+    arrays, _ = _load_arrays(corr)
+    if all(k in arrays for k in _EXACT_MAP):  # classical: the same pullback as pipeline.mesh_surface
+        return _pull_back_classical(partition_polycube(poly, config), _surface_map(arrays), part.vertices, part.faces,
+                                    config, diagonal).save(dest)
+    mesh, _ = pull_back_learned(poly, Correspondence.load(corr), part.vertices, part.faces, config, diagonal,
+                                lmeta.get("name"))
     return mesh.save(dest)
 
 
-def read_polycube(extracted: str | os.PathLike, corr: str | os.PathLike | None = None) -> Polycube:
-    """The polycube a part is meshed on: the extracted one, or the realised one a registration file
-    carries (a learned polycube realised exactly, its thin slabs collapsed: :mod:`polycubenet.realise`)."""
-    _, _, poly, _ = read_extracted(extracted)
-    if corr is not None:
-        arrays, meta = _load_arrays(corr)
-        if "realised_occupancy" in arrays:
-            return Polycube(arrays["realised_xs"], arrays["realised_ys"], arrays["realised_zs"],
-                            arrays["realised_occupancy"], meta=meta.get("polycube", {}))
-    return poly
+def meshed_polycube(hexc: str | os.PathLike, extracted: str | os.PathLike) -> Polycube:
+    """The polycube a pull-back file was meshed on: the extracted one, or the one it was realised as (a
+    learned polycube realised exactly, its thin slabs collapsed: :func:`polycubenet.pipeline.pull_back_learned`)."""
+    m = HexMesh.load(hexc).meta
+    if "realised_polycube" in m:
+        return Polycube.from_meta(m["realised_polycube"])
+    return read_extracted(extracted)[2]
 
 
 def pullback_quality(path: str | os.PathLike) -> dict:
@@ -539,18 +524,16 @@ def pullback_quality(path: str | os.PathLike) -> dict:
 
 
 def report_export(hexc: str | os.PathLike, extracted: str | os.PathLike, loaded: str | os.PathLike,
-                  out_dir: str | os.PathLike, formats=("vtu",), *, key: str | None = None, name: str | None = None,
-                  corr: str | os.PathLike | None = None) -> Path:
+                  out_dir: str | os.PathLike, formats=("vtu",), *, key: str | None = None, name: str | None = None) -> Path:
     """Mesh back to the part's own coordinates, quality report against the input surface,
     and the output files (``hex.<fmt>``, ``quality.json``/``.png``, ``preview.png``,
     ``polycube.npz``, ``result.json`` last).  ``name`` names the part in ``result.json`` (default:
-    the file name the loaded stage was made from; identical files share that stage); ``corr``: the registration
-    file, whose realised polycube (:func:`read_polycube`) is the one written.  Returns ``out_dir``."""
+    the file name the loaded stage was made from; identical files share that stage).  Returns ``out_dir``."""
     from .quality import quality_report
 
     part, _, T, meta = read_loaded(loaded)
     _, _, _, cloud_meta = read_extracted(extracted)
-    poly = read_polycube(extracted, corr)
+    poly = meshed_polycube(hexc, extracted)
     mc = HexMesh.load(hexc)
     mesh = HexMesh(T.inverse(mc.points), mc.hexes, mc.boundary, meta=dict(mc.meta))
     Vo = T.inverse(part.vertices)

@@ -60,10 +60,11 @@ from .frame import Transform, canonicalize
 from .hexmesh import partition
 from .polycube import polycube_surface
 from .policy import MODES as POLYCUBE_MODES
-from .policy import Attempt, error_reason, invalid_mesh_reason, mesh_rank, refinement, run_chain, source_config, source_label, source_names  # noqa: F401
+from .policy import Attempt, ends_chain, error_reason, invalid_mesh_reason, mesh_rank, refinement, run_chain, source_config, source_label, source_names  # noqa: F401
 from .pullback import PullbackConfig, pull_back, worth_retry
 from .quality import QualityReport, quality_report
-from .realise import RealiseConfig, register_learned
+from .realise import RealiseConfig, learned_map
+from .registration import align
 from .sampling import poisson_disk, uniform_sample
 from .structure import ExtractConfig, check_genus, extract
 from .voxel import VoxelConfig
@@ -294,25 +295,22 @@ def mesh_surface(
         def attempt(label: str, tracker) -> Attempt:
             clock.timings, clock.tracker = tracker.seconds, tracker
             cloud, P, N, poly = _polycube_stages(chain[label], sample, Vc, F, genus, config, name, clock, res)
-            exact = None
             with clock("register"):
                 if hasattr(cloud, "correspondence"):  # classical and voxel polycubes know their map exactly
                     corr = cloud.correspondence()
-                else:  # a learned polycube: realised exactly on the part when it can be, else registered
-                    exact, corr = register_learned(sample, P, N, poly, Vc, F, config.n_register, config.realise,
-                                                   seed=config.seed, part=name)
-            if exact is not None:  # the learned structure as the part has it (thin slabs collapsed)
-                poly = exact.polycube
-            with clock("partition"):
-                mesh_pc = partition_polycube(poly, source_config(label, config))
-            with clock("pullback"):
-                if hasattr(cloud, "correspondence") or exact is not None:
-                    mesh_c = _pull_back_classical(mesh_pc, exact.map if exact is not None else corr, Vc, F, config,
-                                                  own_diagonal(Vc, T))
                 else:
-                    mesh_c = pull_back(mesh_pc, corr.map_points, Vc, F, config.pullback, own_diagonal(Vc, T))
-                if not hasattr(cloud, "correspondence"):
-                    mesh_c.meta["map"] = "exact (realised)" if exact is not None else corr.meta["map"]
+                    rng = np.random.default_rng(config.seed + 5)
+                    sub = rng.choice(len(P), size=min(config.n_register, len(P)), replace=False)
+                    corr = align(sample, P[sub], N[sub])
+            cfg = source_config(label, config)
+            if hasattr(cloud, "correspondence"):
+                with clock("partition"):
+                    mesh_pc = partition_polycube(poly, cfg)
+                with clock("pullback"):
+                    mesh_c = _pull_back_classical(mesh_pc, corr, Vc, F, config, own_diagonal(Vc, T))
+            else:
+                with clock("pullback"):
+                    mesh_c, poly = pull_back_learned(poly, corr, Vc, F, cfg, own_diagonal(Vc, T), name)
             return Attempt(label, dict(mesh_c.meta), payload=(cloud, poly, mesh_c), seconds=tracker.seconds,
                            label=source_label(label))
 
@@ -395,6 +393,32 @@ def cloud_polycube(cloud: PolycubeCloud, P: np.ndarray, N: np.ndarray, genus: in
         poly = Polycube(grid[0], grid[1], grid[2], occ, meta={"genus": g, "grid_shape": list(occ.shape), "exact": True})
     poly.meta["provenance"] = cloud.meta.get("provenance")
     return poly
+
+
+def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, config: PipelineConfig,
+                      diagonal: float | None = None, part: str | None = None) -> tuple[HexMesh, Polycube]:
+    """A learned polycube's partition and pull-back (both drivers call this): through the registration's
+    map (``corr``); when that mesh would not end the chain (:func:`polycubenet.policy.ends_chain`: not
+    valid, off the part or under the bar) and ``config.realise`` is set, also through the polycube
+    realised exactly on the part (:func:`polycubenet.realise.learned_map`: the same structure, the
+    classical deformation's exact map), keeping the better mesh (:func:`polycubenet.policy.mesh_rank`)
+    and its polycube.  ``meta["map"]`` says which map made the mesh (and why not the other)."""
+    mesh = pull_back(partition_polycube(poly, config), corr.map_points, Vc, F, config.pullback, diagonal)
+    mesh.meta["map"] = "registration"
+    if ends_chain(mesh.meta, config.min_sj) or config.realise is None:
+        return mesh, poly
+    exact, why_not = learned_map(Vc, F, poly, corr, config.realise, seed=config.seed, part=part)
+    if exact is None:
+        mesh.meta["map"] = f"registration (not realised: {why_not})"
+        return mesh, poly
+    realised = _pull_back_classical(partition_polycube(exact.polycube, config), exact.map, Vc, F, config, diagonal)
+    realised.meta["map"] = "exact (realised)"
+    realised.meta["realised"] = {k: v for k, v in exact.map.meta.items() if k != "method"}
+    realised.meta["realised_polycube"] = exact.polycube.to_meta()
+    if mesh_rank(realised.meta) >= mesh_rank(mesh.meta):
+        return realised, exact.polycube
+    mesh.meta["map"] = "registration (its mesh ranks above the realised polycube's)"
+    return mesh, poly
 
 
 def own_diagonal(Vc: np.ndarray, T: Transform) -> float:

@@ -201,6 +201,14 @@ def mesh_rank(meta: dict) -> tuple:
     return (bool(meta.get("valid")), faithful(meta), -np.inf if sj is None else float(sj))
 
 
+def ends_chain(quality: dict, min_sj: float | None) -> bool:
+    """Whether a pulled-back mesh (``HexMesh.meta`` or a quality dict) ends the chain: valid, faithful
+    (:func:`faithful`) and not under the quality bar ``min_sj``."""
+    sj = quality.get("sj_min")
+    below = min_sj is not None and (sj is None or float(sj) < min_sj)
+    return bool(quality.get("valid")) and faithful(quality) and not below
+
+
 def unfaithful_reason(label: str, meta: dict) -> str:
     """Why a valid mesh that does not follow the part made the chain try the next polycube."""
     return (f"the {label} polycube's hex mesh is valid but {100 * distance_to_part(meta):.2f} % of the diagonal "
@@ -317,10 +325,8 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
             att.seconds = dict(tracker.seconds)
         attempts.append(att)
         meshed.add(src)
-        sj = att.quality.get("sj_min")
-        below = (min_sj is not None and att.quality.get("valid") and (sj is None or float(sj) < min_sj))
         off = bool(att.quality.get("valid")) and not faithful(att.quality)
-        if (att.quality.get("valid") and not below and not off) or last:
+        if ends_chain(att.quality, min_sj) or last:
             chosen = att
             break
         candidates.append(att)

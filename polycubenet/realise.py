@@ -65,10 +65,6 @@ K_TRANSFER = 12
 #: a slab of the learned polycube thinner than this (canonical frame, diagonal 1) may be collapsed to
 #: match the flattened part (:func:`match_structure`)
 THIN_SLAB = 0.03
-#: generated points registered (rigid + CPD) for the labels' transfer: the labels need a coarser map than a
-#: pull-back (examples and never-seen parts realised alike at 4096, 1024 and 512; CPD 2.4-4.0 s at 4096,
-#: 0.7-2.1 s at 1024); the full ``PipelineConfig.n_register`` is registered only when the realisation fails
-N_REGISTER = 1024
 #: weight of the normal's fidelity beside the transferred labels' share (which has weight 1)
 NORMAL_WEIGHT = 0.35
 #: flattened planes of one axis closer than this fraction of the learned polycube's smallest
@@ -85,7 +81,6 @@ class RealiseConfig:
     normal_weight: float = NORMAL_WEIGHT
     merge_rel: float = MERGE_REL
     thin_slab: float = THIN_SLAB
-    n_register: int = N_REGISTER
     classical: ClassicalConfig = ClassicalConfig()
 
 
@@ -264,26 +259,3 @@ def learned_map(V: np.ndarray, F: np.ndarray, poly, corr, config: RealiseConfig 
     except PolycubeError as exc:
         return None, str(exc.args[0] if exc.args else exc)
 
-
-def register_learned(sample, P: np.ndarray, N: np.ndarray, poly, V: np.ndarray, F: np.ndarray, n_register: int,
-                     config: RealiseConfig | None, seed: int = 0, part: str | None = None):
-    """The map of a learned polycube onto the part (both drivers call this): the registration of
-    ``config.n_register`` generated points, then :func:`learned_map`; when that fails (or ``config`` is
-    None), the registration of ``n_register`` points (``PipelineConfig.n_register``), whose ``meta["map"]``
-    says why.  Returns ``(Realised or None, Correspondence or None)``, one of them set."""
-    from .registration import align
-
-    def registered(n: int):
-        rng = np.random.default_rng(seed + 5)
-        sub = rng.choice(len(P), size=min(n, len(P)), replace=False)
-        return align(sample, P[sub], N[sub])
-
-    why = "off"
-    if config is not None:
-        coarse = registered(min(config.n_register, n_register))
-        exact, why = learned_map(V, F, poly, coarse, config, seed=seed, part=part)
-        if exact is not None:
-            return exact, None
-    corr = coarse if config is not None and config.n_register >= n_register else registered(n_register)
-    corr.meta["map"] = f"registration ({why})"
-    return None, corr

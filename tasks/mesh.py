@@ -85,10 +85,9 @@ def partition_pullback(extracted: str, corr: str, loaded: str, dest: str, key: s
 
 @task(**task_options("export"))
 def report_export(hexc: str, extracted: str, loaded: str, out_dir: str, key: str, formats: list[str],
-                  name: str = "", corr: str | None = None) -> dict:
+                  name: str = "") -> dict:
     """Quality report against the input surface and the output files."""
-    rec = stage_record("export", lambda: library.report_export(hexc, extracted, loaded, out_dir, formats, key=key,
-                                                               name=name or None, corr=corr),
+    rec = stage_record("export", lambda: library.report_export(hexc, extracted, loaded, out_dir, formats, key=key, name=name or None),
                        done=lambda: library.load_json(Path(out_dir) / "result.json").get("key") == key)
     return {**rec, "path": str(out_dir)}
 
@@ -210,8 +209,7 @@ def _chain(state, name, path, loaded, sources, keys, paths, config, formats, out
     records[src] = att
     try:
         att["export"] = run("export", report_export, src, _NoTracker(), hexc=att["pullback"]["path"],
-                            extracted=att["extract"]["path"], loaded=loaded, out_dir=out_dir, formats=formats,
-                            corr=att["register"]["path"])
+                            extracted=att["extract"]["path"], loaded=loaded, out_dir=out_dir, formats=formats)
     except FINAL_ERRORS as exc:
         return failed("export", exc, src, outcome.reasons)
     return {"status": "meshed", "stage": "export", "error": None, "source": src, "keys": keys[src], "records": att,

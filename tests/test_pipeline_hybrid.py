@@ -99,13 +99,10 @@ def test_auto_falls_back_on_any_error_of_the_learned_attempt(l_block_file, monke
     else:
         src = _Broken(inner=OracleSource(_l_truth(l_block_file)))
         if where == "register":
-            from polycubenet import registration
-
-            monkeypatch.setattr(registration, "align", lambda *a, **k: (_ for _ in ()).throw(MemoryError("CPD")))
-        elif where == "realise":
-            from polycubenet import realise
-
-            monkeypatch.setattr(realise, "learned_map", lambda *a, **k: (_ for _ in ()).throw(ValueError("flattening")))
+            monkeypatch.setattr(pipeline, "align", lambda *a, **k: (_ for _ in ()).throw(MemoryError("CPD")))
+        elif where == "realise":  # the registration's mesh taken as not ending the chain, then the realisation fails
+            monkeypatch.setattr(pipeline, "ends_chain", lambda *a, **k: False)
+            monkeypatch.setattr(pipeline, "learned_map", lambda *a, **k: (_ for _ in ()).throw(ValueError("flattening")))
         else:
             real = pipeline.pull_back
 
@@ -120,7 +117,7 @@ def test_auto_falls_back_on_any_error_of_the_learned_attempt(l_block_file, monke
     cfg = PipelineConfig(polycube="auto", **SMALL, **({"realise": None} if where == "pullback" else {}))
     res = mesh_part(l_block_file, src, cfg)
     assert res.status == "meshed" and res.provenance == "classical" and res.report.to_dict()["valid"]
-    stage = {"generate": "polycube", "register": "register", "realise": "register", "pullback": "pullback"}[where]
+    stage = {"generate": "polycube", "register": "register", "realise": "pullback", "pullback": "pullback"}[where]
     assert res.fallback_reason.startswith(f"learned polycube rejected at {stage}: ")
     exc_name = {"generate": "RuntimeError", "register": "MemoryError", "realise": "ValueError",
                 "pullback": "FloatingPointError"}[where]

@@ -12,7 +12,7 @@ from polycubenet.polycube import polycube_surface
 from polycubenet.realise import match_structure, realise
 from polycubenet.sampling import poisson_disk
 
-SLANT = 0.35  # the sheared end moves in x by SLANT * (height above the floor), canonical units
+SLANT = 0.8  # the sheared end moves in x by SLANT * (height above the floor), canonical units (a 39 degree end)
 
 
 def _l_polycube(Vc):
@@ -104,3 +104,27 @@ def test_a_thin_slab_of_the_learned_polycube_collapses_onto_the_part_plane_but_a
         else:
             with pytest.raises(PolycubeError):
                 match_structure([xs, ys, zs], occ, learned)
+
+
+class _Map:
+    """A registration's map (``map_points``) for :func:`pull_back_learned`."""
+
+    def __init__(self, fn):
+        self.map_points = fn
+
+
+def test_a_learned_polycube_whose_registration_misses_the_slant_is_meshed_through_its_realisation(slanted_l):
+    """A registration that leaves the end face where the polycube has it (the identity): its mesh is off the
+    part, so the realisation is tried, follows the slanted end more closely and is kept, with its polycube."""
+    from polycubenet.pipeline import PipelineConfig, pull_back_learned
+    from polycubenet.policy import distance_to_part, ends_chain
+
+    V, F, poly, _ = slanted_l
+    cfg = PipelineConfig(target_hexes=1500)
+    identity = _Map(lambda P: np.asarray(P, float))
+    plain, _ = pull_back_learned(poly, identity, V, F, PipelineConfig(target_hexes=1500, realise=None))
+    assert plain.meta["map"] == "registration" and not ends_chain(plain.meta, cfg.min_sj)
+    mesh, used = pull_back_learned(poly, identity, V, F, cfg)
+    assert mesh.meta["map"] == "exact (realised)" and mesh.meta["valid"]
+    assert distance_to_part(mesh.meta) < 0.75 * distance_to_part(plain.meta)
+    assert np.array_equal(used.occupancy, poly.occupancy) and "realised_polycube" in mesh.meta
