@@ -122,7 +122,8 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int) -> dict:
     then the model's second draw when the policy has one; no classical fallback), as
     ``mesh_part`` does: name -> (valid, faithful and at least the quality bar ``min_sj``, SJ min,
     which draw was kept: 1, 2 or None, seconds, the mesh's distance to the part (Hausdorff /
-    diagonal), why the first draw was left)."""
+    diagonal), why the first draw was left, the map that made the kept mesh: ``registration`` or
+    ``exact (realised)``, :func:`polycubenet.pipeline.pull_back_learned`)."""
     from polycubenet.inference import ModelSource
     from polycubenet.pipeline import PipelineConfig, mesh_part
     from polycubenet.policy import faithful
@@ -140,9 +141,9 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int) -> dict:
             dist = r.row()["hausdorff"]
             res[p.stem] = (ok, None if q is None else q.sj_min, draw if ok else None,
                            round(time.perf_counter() - t0, 1), None if dist is None else round(float(dist), 4),
-                           r.fallback_reason)
+                           r.fallback_reason, str(r.mesh.meta.get("map")).split(" (")[0])
         except Exception as exc:  # noqa: BLE001 - report the failure in the row
-            res[p.stem] = (False, f"{type(exc).__name__}", None, round(time.perf_counter() - t0, 1), None, str(exc))
+            res[p.stem] = (False, f"{type(exc).__name__}", None, round(time.perf_counter() - t0, 1), None, str(exc), None)
     return res
 
 
@@ -180,7 +181,7 @@ def main(argv=None) -> int:
     print(f"\n{'part':<18} {'genus':>5} {'first draw':<28} {'learned mesh: SJ, Hausdorff':<28} shape")
     for r in rows:
         m = meshed.get(r["part"])
-        ms = "" if m is None else (("valid, draw %d" % m[2]) if m[0] else "no") + (
+        ms = "" if m is None else (("valid, draw %d%s" % (m[2], ", realised" if m[6] == "exact" else "")) if m[0] else "no") + (
             f" {m[1]:.3f}" if isinstance(m[1], float) else f" {m[1]}") + (
             f" {100 * m[4]:.1f}%" if m[4] is not None else "")
         print(f"{r['part']:<18} {r['genus']:>5} {r['category']:<28} {ms:<28} {r['shape']}")
@@ -189,17 +190,21 @@ def main(argv=None) -> int:
     print(f"\nunseen parts: learned polycube accepted {acc}/{len(rows)} ({acc / max(1, len(rows)):.0%}); "
           f"example parts: {ex_acc}/{len(ex_rows)} ({ex_acc / max(1, len(ex_rows)):.0%})  (first draw, at extraction)")
 
-    def counts(m: dict) -> tuple[int, int]:
-        return sum(v[2] == 1 for v in m.values()), sum(bool(v[0]) for v in m.values())
+    def counts(m: dict) -> tuple[int, int, int]:
+        return (sum(v[2] == 1 for v in m.values()), sum(bool(v[0]) for v in m.values()),
+                sum(bool(v[0]) and v[6] == "exact" for v in m.values()))
 
     if meshed:
-        (u1, u), (e1, e) = counts(meshed), counts(ex_meshed)
+        (u1, u, ur), (e1, e, er) = counts(meshed), counts(ex_meshed)
         print(f"meshed valid and faithful through the learned source (--polycube learned): unseen {u}/{len(rows)} "
-              f"({u1} by the first draw), examples {e}/{len(examples)} ({e1} by the first draw)")
+              f"({u1} by the first draw, {ur} realised exactly), examples {e}/{len(examples)} ({e1} by the first "
+              f"draw, {er} realised exactly)")
     write_json(args.json, {"checkpoint": args.checkpoint, "seed": args.seed, "family": args.family, "count": len(rows), "steps": args.steps,
                            "accepted": acc, "examples_accepted": ex_acc, "examples": len(ex_rows),
                            "meshed_valid": counts(meshed)[1] if meshed else None,
                            "meshed_first_draw": counts(meshed)[0] if meshed else None,
+                           "meshed_realised": counts(meshed)[2] if meshed else None,
+                           "examples_meshed_realised": counts(ex_meshed)[2] if meshed else None,
                            "examples_meshed_valid": counts(ex_meshed)[1] if meshed else None,
                            "examples_meshed_first_draw": counts(ex_meshed)[0] if meshed else None,
                            "rows": rows, "example_rows": ex_rows,

@@ -16,6 +16,12 @@ in the part's canonical frame:
   polycube from the surface itself; its cloud carries the exact map polycube -> part
   (``cloud.correspondence()``), which then replaces registration.
 
+A generated (learned or oracle) polycube is pulled back through the registration's map; when that
+mesh would not end the chain (not valid, off the part, under the quality bar), the same structure is
+also realised exactly on the part (:mod:`polycubenet.realise`: labels transferred through the
+registration, the classical deformation, the same cells or nothing) and the better mesh kept
+(:func:`pull_back_learned`; ``meta["map"]`` and the manifest's ``map`` say which).
+
 **Hybrid policy** (``PipelineConfig.polycube``): the sources of :func:`source_chain` are
 tried in order.
 
