@@ -309,14 +309,13 @@ def mesh_surface(
                     sub = rng.choice(len(P), size=min(config.n_register, len(P)), replace=False)
                     corr = align(sample, P[sub], N[sub])
             cfg = source_config(label, config)
-            if hasattr(cloud, "correspondence"):
-                with clock("partition"):
-                    mesh_pc = partition_polycube(poly, cfg)
-                with clock("pullback"):
+            with clock("partition"):
+                mesh_pc = partition_polycube(poly, cfg)
+            with clock("pullback"):
+                if hasattr(cloud, "correspondence"):
                     mesh_c = _pull_back_classical(mesh_pc, corr, Vc, F, config, own_diagonal(Vc, T))
-            else:
-                with clock("pullback"):
-                    mesh_c, poly = pull_back_learned(poly, corr, Vc, F, cfg, own_diagonal(Vc, T), name)
+                else:
+                    mesh_c, poly = pull_back_learned(poly, corr, Vc, F, cfg, own_diagonal(Vc, T), name, mesh_pc)
             return Attempt(label, dict(mesh_c.meta), payload=(cloud, poly, mesh_c), seconds=tracker.seconds,
                            label=source_label(label))
 
@@ -402,14 +401,17 @@ def cloud_polycube(cloud: PolycubeCloud, P: np.ndarray, N: np.ndarray, genus: in
 
 
 def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, config: PipelineConfig,
-                      diagonal: float | None = None, part: str | None = None) -> tuple[HexMesh, Polycube]:
+                      diagonal: float | None = None, part: str | None = None,
+                      partitioned: HexMesh | None = None) -> tuple[HexMesh, Polycube]:
     """A learned polycube's partition and pull-back (both drivers call this): through the registration's
     map (``corr``); when that mesh would not end the chain (:func:`polycubenet.policy.ends_chain`: not
     valid, off the part or under the bar) and ``config.realise`` is set, also through the polycube
     realised exactly on the part (:func:`polycubenet.realise.learned_map`: the same structure, the
     classical deformation's exact map), keeping the better mesh (:func:`polycubenet.policy.mesh_rank`)
-    and its polycube.  ``meta["map"]`` says which map made the mesh (and why not the other)."""
-    mesh = pull_back(partition_polycube(poly, config), corr.map_points, Vc, F, config.pullback, diagonal)
+    and its polycube.  ``meta["map"]`` says which map made the mesh (and why not the other).
+    ``partitioned``: ``poly``'s partition when the caller made it already."""
+    mesh_pc = partition_polycube(poly, config) if partitioned is None else partitioned
+    mesh = pull_back(mesh_pc, corr.map_points, Vc, F, config.pullback, diagonal)
     mesh.meta["map"] = "registration"
     if ends_chain(mesh.meta, config.min_sj) or config.realise is None:
         return mesh, poly
