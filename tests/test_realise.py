@@ -128,3 +128,23 @@ def test_a_learned_polycube_whose_registration_misses_the_slant_is_meshed_throug
     assert mesh.meta["map"] == "exact (realised)" and mesh.meta["valid"]
     assert distance_to_part(mesh.meta) < 0.75 * distance_to_part(plain.meta)
     assert np.array_equal(used.occupancy, poly.occupancy) and "realised_polycube" in mesh.meta
+
+
+def test_the_flow_exports_the_polycube_a_mesh_was_realised_on(tmp_path, slanted_l):
+    """The pull-back file carries the realised polycube (its thin slabs collapsed), which the export writes
+    instead of the extracted one; a mesh of the registration alone exports the extracted polycube."""
+    from polycubenet import library
+    from polycubenet.data import HexMesh
+
+    _, _, poly, _ = slanted_l
+    extracted = Polycube(poly.xs, poly.ys, np.array([poly.zs[0], poly.zs[1], poly.zs[1] + 0.01, poly.zs[2]]),
+                         np.concatenate([poly.occupancy[:, :, :1], poly.occupancy], axis=2), meta={"genus": 0})
+    ext = library._save_arrays(tmp_path / "extract.npz", {"polycube": extracted.meta, "cloud": {}},
+                               points=np.zeros((1, 3)), normals=np.zeros((1, 3)), xs=extracted.xs, ys=extracted.ys,
+                               zs=extracted.zs, occupancy=extracted.occupancy)
+    empty = dict(points=np.zeros((8, 3)), hexes=np.arange(8)[None], boundary=np.zeros((0, 4), np.int64))
+    plain = HexMesh(**empty, meta={"map": "registration"}).save(tmp_path / "plain.npz")
+    realised = HexMesh(**empty, meta={"map": "exact (realised)", "realised_polycube": poly.to_meta()}).save(tmp_path / "r.npz")
+    got = library.meshed_polycube(realised, ext)
+    assert np.array_equal(got.occupancy, poly.occupancy) and np.allclose(got.zs, poly.zs)
+    assert library.meshed_polycube(plain, ext).occupancy.shape == extracted.occupancy.shape
