@@ -419,7 +419,8 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
     if exact is None:
         mesh.meta["map"] = f"registration (not realised: {why_not})"
         return mesh, poly
-    realised = _pull_back_classical(partition_polycube(exact.polycube, config), exact.map, Vc, F, config, diagonal)
+    realised = _pull_back_classical(partition_polycube(exact.polycube, config), exact.map, Vc, F, config, diagonal,
+                                    retry_below=config.min_sj)
     realised.meta["map"] = "exact (realised)"
     realised.meta["realised"] = {k: v for k, v in exact.map.meta.items() if k != "method"}
     realised.meta["realised_polycube"] = exact.polycube.to_meta()
@@ -435,11 +436,12 @@ def own_diagonal(Vc: np.ndarray, T: Transform) -> float:
     return float(np.linalg.norm(np.ptp(np.asarray(Vc, float) @ np.asarray(T.rotation, float), axis=0)))
 
 
-def _pull_back_classical(mesh_pc, corr, Vc, F, config: PipelineConfig, diagonal: float | None = None) -> HexMesh:
+def _pull_back_classical(mesh_pc, corr, Vc, F, config: PipelineConfig, diagonal: float | None = None,
+                         retry_below: float | None = None) -> HexMesh:
     """Pullback with the classical (exact on the surface) map: the interior mode of
-    ``config.classical.interior`` first; when that mesh is not valid, the other mode too,
-    keeping the mesh with the higher minimum scaled Jacobian (``meta["interior"]`` says which); not when the
-    first mesh is far from valid (:func:`polycubenet.pullback.worth_retry`)."""
+    ``config.classical.interior`` first; when that mesh is not valid (or valid but under ``retry_below``),
+    the other mode too, keeping the mesh with the higher minimum scaled Jacobian (``meta["interior"]`` says
+    which); not when the first mesh is far from valid (:func:`polycubenet.pullback.worth_retry`)."""
     modes = [config.classical.interior] + [m for m in ("harmonic", "correction") if m != config.classical.interior]
     best = None
     for mode in modes:
@@ -447,7 +449,8 @@ def _pull_back_classical(mesh_pc, corr, Vc, F, config: PipelineConfig, diagonal:
         mesh.meta["interior"] = mode
         if best is None or (mesh.meta.get("sj_min") or -np.inf) > (best.meta.get("sj_min") or -np.inf):
             best = mesh
-        if best.meta.get("valid") or not worth_retry(best.meta, config.pullback):
+        good = best.meta.get("valid") and (retry_below is None or (best.meta.get("sj_min") or -np.inf) >= retry_below)
+        if good or not worth_retry(best.meta, config.pullback):
             break
     return best
 

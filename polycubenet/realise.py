@@ -65,6 +65,10 @@ K_TRANSFER = 12
 #: a slab of the learned polycube thinner than this (canonical frame, diagonal 1) may be collapsed to
 #: match the flattened part (:func:`match_structure`)
 THIN_SLAB = 0.03
+#: a planar patch of the part: triangles joined across edges bending less than FLAT_DEG, all normals within
+#: PLANAR_DEV_DEG of the patch's mean (:func:`planar_patches`); each takes one label (:func:`patch_cost`)
+FLAT_DEG = 2.0
+PLANAR_DEV_DEG = 3.0
 #: weight of the normal's fidelity beside the transferred labels' share (which has weight 1)
 NORMAL_WEIGHT = 0.35
 #: flattened planes of one axis closer than this fraction of the learned polycube's smallest
@@ -81,6 +85,7 @@ class RealiseConfig:
     normal_weight: float = NORMAL_WEIGHT
     merge_rel: float = MERGE_REL
     thin_slab: float = THIN_SLAB
+    planar_patches: bool = True
     classical: ClassicalConfig = ClassicalConfig()
 
 
@@ -123,6 +128,47 @@ def label_cost(votes: np.ndarray, normals: np.ndarray, areas: np.ndarray, normal
     a = (areas / areas.mean())[:, None]
     nd = normals @ DIRECTIONS.T
     return a * ((1.0 - votes) + normal_weight * (1.0 - nd) + 4.0 * (nd < 0.0))
+
+
+def planar_patches(normals: np.ndarray, edge_faces: np.ndarray, flat_deg: float = FLAT_DEG,
+                   max_dev_deg: float = PLANAR_DEV_DEG) -> np.ndarray:
+    """``(F,)`` the planar patch of each triangle, ``-1`` where it is on none: the groups of triangles joined
+    across edges that bend less than ``flat_deg`` whose normals all stay within ``max_dev_deg`` of their mean
+    (a CAD part's planar faces; a finely tessellated cylinder bends little per edge but fails the second test)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(normals)
+    c = np.einsum("ij,ij->i", normals[edge_faces[:, 0]], normals[edge_faces[:, 1]])
+    flat = c > np.cos(np.radians(flat_deg))
+    ef = edge_faces[flat]
+    k, comp = connected_components(coo_matrix((np.ones(len(ef)), (ef[:, 0], ef[:, 1])), shape=(n, n)), directed=False)
+    mean = np.zeros((k, 3))
+    np.add.at(mean, comp, normals)
+    mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-300)
+    dev = np.einsum("ij,ij->i", normals, mean[comp])
+    worst = np.ones(k)
+    np.minimum.at(worst, comp, dev)
+    size = np.bincount(comp, minlength=k)
+    planar = (worst > np.cos(np.radians(max_dev_deg))) & (size > 1)
+    return np.where(planar[comp], comp, -1)
+
+
+def patch_cost(data: np.ndarray, areas: np.ndarray, patch: np.ndarray) -> np.ndarray:
+    """``data`` with every planar patch's rows replaced by the patch's cost per area times the row's area, so
+    a planar face of the part takes one label (the learned share over the whole face) and the charts' borders
+    follow the part's edges instead of cutting across a face where the registration left its samples."""
+    out = data.copy()
+    on = patch >= 0
+    if not on.any():
+        return out
+    a = areas / areas.mean()
+    k = int(patch.max()) + 1
+    tot = np.zeros((k, data.shape[1]))
+    np.add.at(tot, patch[on], data[on])
+    area = np.bincount(patch[on], weights=a[on], minlength=k)
+    out[on] = a[on, None] * tot[patch[on]] / np.maximum(area[patch[on], None], 1e-300)
+    return out
 
 
 def _merge_close(Xp: np.ndarray, F: np.ndarray, labels: np.ndarray, tol: float) -> np.ndarray:
@@ -217,6 +263,8 @@ def realise(V: np.ndarray, F: np.ndarray, poly, map_points, config: RealiseConfi
     edges, edge_faces = edge_topology(F)
     votes = transfer_votes(V, F, poly, map_points, config.n_transfer, config.k, seed=seed + 41)
     data = label_cost(votes, normals, areas, config.normal_weight)
+    if config.planar_patches:
+        data = patch_cost(data, areas, planar_patches(normals, edge_faces))
     labels = np.argmin(data, axis=1)
     w = _edge_weights(V, F, edges, edge_faces, normals, cc)
     labels = smooth_labels(labels, normals, areas, edge_faces, w, cc.smooth_sweeps, rng, data)
