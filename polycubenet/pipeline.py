@@ -70,6 +70,7 @@ from .policy import Attempt, ends_chain, error_reason, invalid_mesh_reason, mesh
 from .pullback import PullbackConfig, pull_back, worth_retry
 from .quality import QualityReport, quality_report
 from .realise import RealiseConfig, learned_map
+from .realise import variants as realise_variants
 from .registration import align
 from .sampling import poisson_disk, uniform_sample
 from .structure import ExtractConfig, check_genus, extract
@@ -407,27 +408,35 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
     map (``corr``); when that mesh would not end the chain (:func:`polycubenet.policy.ends_chain`: not
     valid, off the part or under the bar) and ``config.realise`` is set, also through the polycube
     realised exactly on the part (:func:`polycubenet.realise.learned_map`: the same structure, the
-    classical deformation's exact map), keeping the better mesh (:func:`polycubenet.policy.mesh_rank`)
-    and its polycube.  ``meta["map"]`` says which map made the mesh (and why not the other).
+    classical deformation's exact map), with each labelling of :func:`polycubenet.realise.variants` in turn
+    until a mesh ends the chain; the best mesh (:func:`polycubenet.policy.mesh_rank`) and its polycube are
+    kept.  ``meta["map"]`` says which map made the mesh (and why not the others).
     ``partitioned``: ``poly``'s partition when the caller made it already."""
     mesh_pc = partition_polycube(poly, config) if partitioned is None else partitioned
     mesh = pull_back(mesh_pc, corr.map_points, Vc, F, config.pullback, diagonal)
     mesh.meta["map"] = "registration"
     if ends_chain(mesh.meta, config.min_sj) or config.realise is None:
         return mesh, poly
-    exact, why_not = learned_map(Vc, F, poly, corr, config.realise, seed=config.seed, part=part)
-    if exact is None:
-        mesh.meta["map"] = f"registration (not realised: {why_not})"
-        return mesh, poly
-    realised = _pull_back_classical(partition_polycube(exact.polycube, config), exact.map, Vc, F, config, diagonal,
-                                    retry_below=config.min_sj)
-    realised.meta["map"] = "exact (realised)"
-    realised.meta["realised"] = {k: v for k, v in exact.map.meta.items() if k != "method"}
-    realised.meta["realised_polycube"] = exact.polycube.to_meta()
-    if mesh_rank(realised.meta) >= mesh_rank(mesh.meta):
-        return realised, exact.polycube
-    mesh.meta["map"] = "registration (its mesh ranks above the realised polycube's)"
-    return mesh, poly
+    best, used, why_not = mesh, poly, []
+    for rc in realise_variants(config.realise):
+        exact, why = learned_map(Vc, F, poly, corr, rc, seed=config.seed, part=part)
+        if exact is None:
+            why_not.append(why)
+            continue
+        realised = _pull_back_classical(partition_polycube(exact.polycube, config), exact.map, Vc, F, config,
+                                        diagonal, retry_below=config.min_sj)
+        realised.meta["map"] = "exact (realised)"
+        realised.meta["realised"] = {k: v for k, v in exact.map.meta.items() if k != "method"}
+        realised.meta["realised"]["planar_patches"] = rc.planar_patches
+        realised.meta["realised_polycube"] = exact.polycube.to_meta()
+        if mesh_rank(realised.meta) > mesh_rank(best.meta) or best is mesh and mesh_rank(realised.meta) == mesh_rank(mesh.meta):
+            best, used = realised, exact.polycube
+        if ends_chain(realised.meta, config.min_sj):
+            break
+    if best is mesh:
+        why = "; ".join(why_not) if why_not else "its mesh ranks above the realised ones"
+        mesh.meta["map"] = f"registration ({why})"
+    return best, used
 
 
 def own_diagonal(Vc: np.ndarray, T: Transform) -> float:
