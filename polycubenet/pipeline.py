@@ -417,9 +417,9 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
     mesh.meta["map"] = "registration"
     if ends_chain(mesh.meta, config.min_sj) or config.realise is None:
         return mesh, poly
-    best, used, why_not = mesh, poly, []
+    best, used, why_not, cache = mesh, poly, [], {}
     for rc in realise_variants(config.realise):
-        exact, why = learned_map(Vc, F, poly, corr, rc, seed=config.seed, part=part)
+        exact, why = learned_map(Vc, F, poly, corr, rc, seed=config.seed, part=part, cache=cache)
         if exact is None:
             why_not.append(why)
             continue
@@ -429,7 +429,8 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
         realised.meta["realised"] = {k: v for k, v in exact.map.meta.items() if k != "method"}
         realised.meta["realised"]["planar_patches"] = rc.planar_patches
         realised.meta["realised_polycube"] = exact.polycube.to_meta()
-        if mesh_rank(realised.meta) > mesh_rank(best.meta) or best is mesh and mesh_rank(realised.meta) == mesh_rank(mesh.meta):
+        rank, kept = mesh_rank(realised.meta), mesh_rank(best.meta)
+        if rank > kept or (best is mesh and rank == kept):  # a tie with the registration's mesh: the exact map
             best, used = realised, exact.polycube
         if ends_chain(realised.meta, config.min_sj):
             break

@@ -252,7 +252,7 @@ def match_structure(got_grid, got_occ, poly, thin: float = THIN_SLAB):
 
 
 def realise(V: np.ndarray, F: np.ndarray, poly, map_points, config: RealiseConfig = RealiseConfig(), seed: int = 0,
-            part: str | None = None) -> Realised:
+            part: str | None = None, cache: dict | None = None) -> Realised:
     """The exact map from the learned polycube ``poly`` onto the part ``(V, F)`` (canonical frame), its
     labels taken through ``map_points`` (the registration's map); see the module docstring.
 
@@ -260,19 +260,24 @@ def realise(V: np.ndarray, F: np.ndarray, poly, map_points, config: RealiseConfi
     plane: :func:`match_structure`) and a :class:`~polycubenet.classical.SurfaceMap` whose flattened
     surface lies on that polycube's surface (``meta``: labels, flips, collapsed slabs, seconds).  Raises
     :class:`~polycubenet.errors.PolycubeError` when the flattened part does not bound the learned structure.
+    ``cache``: a dict shared by the calls for one polycube and map (the labelling :func:`variants`), which
+    then decimate, measure and transfer the labels once.
     """
     t0 = time.perf_counter()
-    V = np.asarray(V, dtype=np.float64)
-    F = np.asarray(F, dtype=np.int64)
     cc = config.classical
-    if len(F) > cc.max_faces:
-        dec = decimate(V, F, cc.max_faces)
-        if dec is not None:
-            V, F = dec
+    cache = {} if cache is None else cache
+    if "votes" not in cache:
+        V = np.asarray(V, dtype=np.float64)
+        F = np.asarray(F, dtype=np.int64)
+        if len(F) > cc.max_faces:
+            dec = decimate(V, F, cc.max_faces)
+            if dec is not None:
+                V, F = dec
+        cache.update(V=V, F=F, geometry=face_normals_areas(V, F), topology=edge_topology(F),
+                     votes=transfer_votes(V, F, poly, map_points, config.n_transfer, config.k, seed=seed + 41))
+    V, F, votes = cache["V"], cache["F"], cache["votes"]
+    (normals, areas), (edges, edge_faces) = cache["geometry"], cache["topology"]
     rng = np.random.default_rng(seed)
-    normals, areas = face_normals_areas(V, F)
-    edges, edge_faces = edge_topology(F)
-    votes = transfer_votes(V, F, poly, map_points, config.n_transfer, config.k, seed=seed + 41)
     data = label_cost(votes, normals, areas, config.normal_weight)
     if config.planar_patches:
         data = patch_cost(data, areas, planar_patches(normals, edge_faces))
@@ -307,14 +312,14 @@ def realise(V: np.ndarray, F: np.ndarray, poly, map_points, config: RealiseConfi
 
 
 def learned_map(V: np.ndarray, F: np.ndarray, poly, corr, config: RealiseConfig | None, seed: int = 0,
-                part: str | None = None) -> tuple[Realised | None, str | None]:
+                part: str | None = None, cache: dict | None = None) -> tuple[Realised | None, str | None]:
     """The map a learned polycube is pulled back with: :func:`realise`'s exact one when ``config`` is set
     and the flattened part bounds the learned structure, else None and why (then the registration's
     ``corr`` maps the polycube, as without realisation)."""
     if config is None:
         return None, "off"
     try:
-        return realise(V, F, poly, corr.map_points, config, seed=seed, part=part), None
+        return realise(V, F, poly, corr.map_points, config, seed=seed, part=part, cache=cache), None
     except PolycubeError as exc:
         return None, str(exc.args[0] if exc.args else exc)
 
