@@ -49,6 +49,7 @@ from .classical import (
     edge_topology,
     flat_structure,
     flatten_labelled,
+    normal_fidelity,
     repair_labels,
     smooth_labels,
 )
@@ -138,7 +139,7 @@ def label_cost(votes: np.ndarray, normals: np.ndarray, areas: np.ndarray, normal
     to their mean), and a label facing away from the triangle's normal (``n . d < 0``) costs 4 more."""
     a = (areas / areas.mean())[:, None]
     nd = normals @ DIRECTIONS.T
-    return a * ((1.0 - votes) + normal_weight * (1.0 - nd) + 4.0 * (nd < 0.0))
+    return a * ((1.0 - votes) + 4.0 * (nd < 0.0)) + normal_weight * normal_fidelity(normals, areas)
 
 
 def planar_patches(normals: np.ndarray, edge_faces: np.ndarray, flat_deg: float = FLAT_DEG,
