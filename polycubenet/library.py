@@ -62,7 +62,7 @@ STAGE_VERSIONS = {
     "polycube": "1",
     "extract": "4",  # 2: carries the classical exact map; 3: the voxel solid taken as built; 4: no plane refit
     "register": "2",  # 2: the classical exact map replaces CPD
-    "pullback": "4",  # 2: classical pullback as in pipeline.mesh_surface; 3: sj_terms by operators; 4: realise.py
+    "pullback": "5",  # 2: classical pullback as in pipeline.mesh_surface; 3: sj_terms by operators; 4: realise.py; 5: no-pillow retry
     "export": "1",
 }
 #: stage names in pipeline order (what ``stage reached`` in the manifest refers to)

@@ -165,3 +165,34 @@ def test_planar_patches_are_the_flat_faces_not_a_finely_tessellated_cylinder():
         if m is cyl:
             side = np.abs(n[:, 2]) < 0.5
             assert (patch[side] == -1).all()
+
+
+@pytest.mark.parametrize("retry_below, pillowed_sj, want", [
+    (0.2, 0.15, [("correction", True), ("harmonic", True), ("correction", False)]),  # under the bar: no pillow
+    (0.2, 0.35, [("correction", True)]),  # the first mesh ends the chain: nothing more
+    (None, 0.15, [("correction", True)]),  # the classical source (no bar): a valid mesh is kept as it is
+])
+def test_a_realised_mesh_under_the_bar_is_pulled_back_again_without_the_pillow_layer(monkeypatch, retry_below,
+                                                                                      pillowed_sj, want):
+    """The pull-back behind a realised polycube tries both interior modes, then both without the pillow
+    layer, until a mesh ends the chain, and keeps the best (valid, faithful, higher minimum SJ)."""
+    import dataclasses
+
+    from polycubenet import pipeline
+    from polycubenet.data import HexMesh
+
+    calls = []
+
+    def fake_pull_back(mesh_pc, to_part, V, F, config, diagonal=None):
+        calls.append((config.interior, config.pillow))
+        sj = pillowed_sj if config.pillow else 0.31
+        return HexMesh(np.zeros((8, 3)), np.arange(8)[None], meta={"valid": True, "sj_min": sj, "hausdorff": 0.004,
+                                                                      "pillowed": config.pillow})
+
+    monkeypatch.setattr(pipeline, "pull_back", fake_pull_back)
+    cfg = pipeline.PipelineConfig()
+    cfg = dataclasses.replace(cfg, classical=dataclasses.replace(cfg.classical, interior="correction"))
+    mesh = pipeline._pull_back_classical(None, _Map(lambda P: P), None, None, cfg, retry_below=retry_below)
+    assert calls == want
+    assert (mesh.meta["interior"], mesh.meta["pillowed"]) == want[-1]  # the last one tried is the best here
+    assert mesh.meta["sj_min"] == (0.31 if want[-1][1] is False else pillowed_sj)
