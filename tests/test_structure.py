@@ -171,7 +171,7 @@ def test_extract_flattens_a_slanted_end_into_the_end_face(deg, seed):
     box, whose -x plane lies within the ramp (between the slant's foot at x = -0.4 and its top)."""
     P, N = _slanted_block(deg, seed)
     with pytest.raises(PolycubeError, match="far from the extracted polycube"):
-        extract(P, N, genus=0)  # the default: no fallbacks
+        extract(P, N, genus=0, config=ExtractConfig().for_exact_clouds())  # no fallbacks
     got = extract(P, N, genus=0, config=ExtractConfig(ramp_min_deg=10.0))
     assert got.occupancy.shape == (1, 1, 1) and got.occupancy.all()
     top = -0.4 + 0.2 * np.tan(np.radians(deg))
