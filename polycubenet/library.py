@@ -43,7 +43,7 @@ from .atomic import write_json, write_text
 from .data import HexMesh, Part, Polycube, PolycubeCloud, SurfaceSample
 from .errors import PolycubeError
 from .pipeline import OracleSource, PartResult, PipelineConfig
-from .policy import draw_seed, draw_steps, refinement, source_config
+from .policy import draw_seed, draw_steps, extraction_config, refinement, source_config
 
 #: part files the library reads (``polycubenet.io.load_part``)
 CAD_SUFFIXES = (".step", ".stp", ".iges", ".igs")
@@ -199,7 +199,7 @@ def stage_params(config: PipelineConfig, *, polycube: str = "oracle", polycube_e
         "load_sample": {"n_sample": config.n_sample, "seed": config.seed, "load": dict(load_kw or {})},
         "polycube": {"source": polycube, "seed": config.seed, "extra": polycube_extra,
                      "n_points": config.n_learned if refinement(polycube)[0] == "learned" else config.n_polycube},
-        "extract": {"extract": config.extract},
+        "extract": {"extract": extraction_config(polycube, config).extract},  # a further draw: no fallbacks
         "register": {"n_register": config.n_register, "seed": config.seed},
         "pullback": {"target_hexes": hexes.target_hexes, "target_size": hexes.target_size, "pullback": config.pullback,
                      "realise": config.realise, "min_sj": config.min_sj},

@@ -66,7 +66,7 @@ from .frame import Transform, canonicalize
 from .hexmesh import partition
 from .polycube import polycube_surface
 from .policy import MODES as POLYCUBE_MODES
-from .policy import Attempt, ends_chain, error_reason, invalid_mesh_reason, mesh_rank, refinement, run_chain, source_config, source_label, source_names  # noqa: F401
+from .policy import Attempt, ends_chain, error_reason, extraction_config, invalid_mesh_reason, mesh_rank, refinement, run_chain, source_config, source_label, source_names  # noqa: F401
 from .pullback import PullbackConfig, pull_back, worth_retry
 from .quality import QualityReport, quality_report
 from .realise import RealiseConfig, learned_map
@@ -301,7 +301,8 @@ def mesh_surface(
 
         def attempt(label: str, tracker) -> Attempt:
             clock.timings, clock.tracker = tracker.seconds, tracker
-            cloud, P, N, poly = _polycube_stages(chain[label], sample, Vc, F, genus, config, name, clock, res)
+            cloud, P, N, poly = _polycube_stages(chain[label], sample, Vc, F, genus, extraction_config(label, config),
+                                                 name, clock, res)
             with clock("register"):
                 if hasattr(cloud, "correspondence"):  # classical and voxel polycubes know their map exactly
                     corr = cloud.correspondence()

@@ -114,7 +114,8 @@ class ExtractConfig:
     def for_exact_clouds(self) -> "ExtractConfig":
         """This config without the fallbacks meant for generated clouds (flattened ramps, the wide
         kernel): for clouds sampled from an exact polycube surface (the classical flattening), whose
-        failures say the planes are too close, not that the cloud is a generator's."""
+        failures say the planes are too close, not that the cloud is a generator's; also the model's
+        further draws (:func:`polycubenet.policy.extraction_config`)."""
         return dataclasses.replace(self, ramp_min_deg=None, wide_bandwidth_spacings=None)
 
 

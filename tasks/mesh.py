@@ -148,7 +148,7 @@ def _chain(state, name, path, loaded, sources, keys, paths, config, formats, out
     """The body of :func:`mesh_chain` (``state["stage"]`` follows the stage reached): each source's
     stages as tasks, the choice between sources by :func:`polycubenet.policy.run_chain`."""
     from polycubenet.errors import PolycubeError
-    from polycubenet.policy import Attempt, run_chain, source_config, source_label
+    from polycubenet.policy import Attempt, extraction_config, run_chain, source_config, source_label
 
     from .common import FINAL_ERRORS
 
@@ -180,7 +180,7 @@ def _chain(state, name, path, loaded, sources, keys, paths, config, formats, out
             run("polycube", polycube_cloud, src, tracker, kind=src, path=path, loaded=loaded, dest=p["polycube"],
                 config=config, **(model if src.startswith("learned+") else {}))
         run("extract", cleanup_extract, src, tracker, cloud=att["polycube"]["path"], loaded=loaded, dest=p["extract"],
-            config=config)
+            config=extraction_config(src, config))
         run("register", register, src, tracker, extracted=att["extract"]["path"], loaded=loaded, dest=p["register"],
             config=config)
         run("pullback", partition_pullback, src, tracker, extracted=att["extract"]["path"],
