@@ -83,14 +83,14 @@ def main(argv=None) -> int:
     ap.add_argument("--draws", type=int, default=4, help="noise draws per part")
     ap.add_argument("--fallbacks", action="store_true",
                     help="extract with the generator fallbacks (structure.GENERATOR_FALLBACKS: flattened ramps, "
-                         "a wider kernel), off in the pipeline")
+                         "a wider kernel; the pipeline's first draw has them since session 15); without: bare")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/unseen_draws.json"))
     args = ap.parse_args(argv)
     import dataclasses
 
     from polycubenet.structure import GENERATOR_FALLBACKS, ExtractConfig
 
-    config = dataclasses.replace(ExtractConfig(), **GENERATOR_FALLBACKS) if args.fallbacks else None
+    config = dataclasses.replace(ExtractConfig(), **GENERATOR_FALLBACKS) if args.fallbacks else ExtractConfig().for_exact_clouds()
     names = args.names or [Path(c).stem for c in args.checkpoints]
     if len(names) != len(args.checkpoints):
         ap.error("--names needs one name per checkpoint")
