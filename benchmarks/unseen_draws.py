@@ -86,11 +86,9 @@ def main(argv=None) -> int:
                          "a wider kernel; the pipeline's first draw has them since session 15); without: bare")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/unseen_draws.json"))
     args = ap.parse_args(argv)
-    import dataclasses
+    from polycubenet.structure import ExtractConfig
 
-    from polycubenet.structure import GENERATOR_FALLBACKS, ExtractConfig
-
-    config = dataclasses.replace(ExtractConfig(), **GENERATOR_FALLBACKS) if args.fallbacks else ExtractConfig().for_exact_clouds()
+    config = ExtractConfig() if args.fallbacks else ExtractConfig().for_exact_clouds()  # the defaults carry them
     names = args.names or [Path(c).stem for c in args.checkpoints]
     if len(names) != len(args.checkpoints):
         ap.error("--names needs one name per checkpoint")
