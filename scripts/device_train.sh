@@ -32,6 +32,8 @@ SEEDS=${SEEDS:-8 9}  # the generator seeds of the two fresh sets (FLAGS1, FLAGS2
 FLAGS1=${FLAGS1:-}  # synth flags of the first set (e.g. "--cad-features --whole-slants --max-strength 0.35")
 FLAGS2=${FLAGS2:---cad-features --whole-slants}  # of the second (session 11 used --cad-features alone)
 COUNT=${COUNT:-16384}  # pairs per set (the training uses what exists so far)
+# PER_SHARD (default 256): pairs per shard; 64 lets a short lease start training within ~40 s.
+# MINSHARDS (default 12): finished shards the training waits for
 CKPT=polycubenet/checkpoints/polycubenet-cpu.pt  # its recipe is the run's
 INIT=${INIT:-$CKPT}  # the weights the run starts from, e.g. the committed continue file
 EVAL=${EVAL:-}  # a held-out shard folder carried along (its loss is logged)
@@ -42,14 +44,14 @@ start)
   nproc; nvidia-smi -L
   # the device image has no open3d: Poisson-disk sampling falls back to polycubenet.sampling.eliminate_samples
   # (the same points, ~5x slower; session 7 ran before it existed, with --sampler uniform)
-  SYNTH="$PY -m polycubenet.synth --n-cond 2048 --n-target 2048 --no-progress ${SAMPLER:+--sampler $SAMPLER}"
+  SYNTH="$PY -m polycubenet.synth --n-cond 2048 --n-target 2048 --per-shard ${PER_SHARD:-256} --no-progress ${SAMPLER:+--sampler $SAMPLER}"
   read -r S1 S2 <<< "$SEEDS"
   [ -n "${NOGEN:-}" ] || setsid nohup $SYNTH --out "$D/g$S1" --count "$COUNT" --seed "$S1" --workers 7 $FLAGS1 > "$D/g$S1.out" 2>&1 &
   [ -n "${NOGEN:-}" ] || setsid nohup $SYNTH --out "$D/g$S2" --count "$COUNT" --seed "$S2" --workers 7 $FLAGS2 > "$D/g$S2.out" 2>&1 &
   [ -n "${NOGEN:-}" ] || setsid nohup bash -c "while true; do for s in $S1 $S2; do for f in $D/g\$s/shard-*.npz; do [ -e \$f ] || continue;
       b=\$(basename \$f); [ -e $D/mix/shard-\$s\${b#shard-} ] || ln -s \$f $D/mix/shard-\$s\${b#shard-}; done; done;
       sleep 5; done" > /dev/null 2>&1 &
-  while [ "$(ls "$D/mix" | wc -l)" -lt 12 ]; do sleep 5; done
+  while [ "$(ls "$D/mix" | wc -l)" -lt "${MINSHARDS:-12}" ]; do sleep 5; done
   RECIPE=$("$PY" -c "import sys; from polycubenet.train import recipe_flags; print(' '.join(recipe_flags(sys.argv[1])))" "$CKPT")
   echo "recipe: $RECIPE --batch $BATCH --lr $LR --init $INIT"
   $PY -m polycubenet.train --data "$D/mix" --out "$D/run" --init "$INIT" $RECIPE --batch "$BATCH" ${EVAL:+--eval-data $EVAL} \
