@@ -39,6 +39,7 @@ import torch
 from .model import Diffusion, PolycubeNet, count_parameters, preset, to_network
 from .model.checkpoint import save_checkpoint
 from .model.config import ModelConfig
+from .model.network import grow_identity
 from .synth.shards import list_shards, load_shard
 
 
@@ -390,9 +391,11 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
         take.update(widened)
         model.load_state_dict(take, strict=False)
         fresh = sorted(set(own) - set(take))
+        # latent layers the file does not have (a deeper preset) start as identities: the same function
+        grown = grow_identity(model, set(fresh))
         if fresh and rank == 0:
-            print(f"[train] --init {init}: {len(take)} tensors taken, {len(fresh)} kept fresh: {', '.join(fresh)}",
-                  flush=True)
+            print(f"[train] --init {init}: {len(take)} tensors taken, {len(fresh)} kept fresh: {', '.join(fresh)}"
+                  + (f"; {len(grown)} added latent layers start as identities" if grown else ""), flush=True)
         cpu_before = (float(src.get("cpu_hours") or 0.0) + float(prior_cpu_hours)) * 3600.0
         gpu_before = float(src.get("gpu_hours") or 0.0) * 3600.0
         lineage = list(src.get("lineage", [])) + [{"init": str(init), "step": src.get("step"),

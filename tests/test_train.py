@@ -220,6 +220,32 @@ def test_an_anchor_normals_model_starts_as_the_anchored_one_it_widens(shards, tm
         new(x, t, cond, anchor=anchor)
 
 
+def test_a_deeper_model_starts_as_the_shallower_one_it_grows(shards, tmp_path):
+    """``--init`` into a preset with more latent layers per block (``cpu-anchored-normals-deep`` over
+    ``cpu-anchored-normals``): the added layers start as identities, so the deeper model computes the
+    shallower one's function until it trains; they are fresh, not zero, once it has trained."""
+    from polycubenet.model import preset as model_preset
+
+    old_cfg = dataclasses.replace(model_preset("tiny"), anchored=True)
+    train(shards, tmp_path / "old", dataclasses.replace(CFG, steps=3), progress=False, model_config=old_cfg)
+    old = load_checkpoint(tmp_path / "old" / "last.pt").model.eval()
+    deep_cfg = dataclasses.replace(old_cfg, denoiser=dataclasses.replace(old_cfg.denoiser, layers=3))
+    train(shards, tmp_path / "new", dataclasses.replace(CFG, steps=1, lr=0.0), progress=False,
+          model_config=deep_cfg, init=tmp_path / "old" / "last.pt")
+    new = load_checkpoint(tmp_path / "new" / "last.pt").model.eval()
+    assert len(new.denoiser.blocks[0].layers) == 3 and len(old.denoiser.blocks[0].layers) == 1
+    g = torch.Generator().manual_seed(0)
+    x, cond, anchor = torch.randn(2, 20, 6, generator=g), torch.randn(2, 30, 3, generator=g), torch.randn(2, 20, 3, generator=g)
+    t = torch.tensor([300, 900])
+    with torch.no_grad():
+        torch.testing.assert_close(new(x, t, cond, anchor=anchor), old(x, t, cond, anchor=anchor))
+    # and the added layers learn: a step with a learning rate moves their zeroed projections
+    train(shards, tmp_path / "more", dataclasses.replace(CFG, steps=2, warmup=0, lr=1e-2), progress=False,
+          model_config=deep_cfg, init=tmp_path / "old" / "last.pt")
+    grown = load_checkpoint(tmp_path / "more" / "last.pt").model
+    assert grown.denoiser.blocks[0].layers[2].ff.net[-1].weight.abs().sum() > 0
+
+
 def test_a_growing_folder_is_reread_loading_only_the_new_shards(shards, tmp_path, monkeypatch):
     import shutil
 

@@ -127,6 +127,15 @@ PRESETS: dict[str, ModelConfig] = {
         anchored=True,
         anchor_normals=True,
     ),
+    # cpu-anchored-normals with five latent layers per denoiser block instead of three: more capacity
+    # where it is cheap (64 latents, not the points).  ``train --init`` from a cpu-anchored-normals file
+    # starts it as that file's function: the added layers begin as identities (``grow_identity``)
+    "cpu-anchored-normals-deep": ModelConfig(
+        encoder=StreamConfig(blocks=2, layers=2, dim=96, latents=64, heads=4, mlp_ratio=2.0),
+        denoiser=StreamConfig(blocks=3, layers=5, dim=96, latents=64, heads=4, mlp_ratio=2.0),
+        anchored=True,
+        anchor_normals=True,
+    ),
     "tiny": ModelConfig(
         encoder=StreamConfig(blocks=1, layers=1, dim=32, latents=8, heads=2, mlp_ratio=2.0),
         denoiser=StreamConfig(blocks=1, layers=1, dim=32, latents=8, heads=2, mlp_ratio=2.0),

@@ -101,6 +101,13 @@ class LatentLayer(nn.Module):
         z = z + self.attn(self.norm(z))
         return self.ff(z)
 
+    def make_identity(self) -> None:
+        """Zero both residual branches' output projections: the layer then returns its input
+        (a layer added to a trained model starts as a no-op, :func:`grow_identity`)."""
+        for lin in (self.attn.out, self.ff.net[-1]):
+            nn.init.zeros_(lin.weight)
+            nn.init.zeros_(lin.bias)
+
 
 class _NormedContext:
     """A point stream seen through a LayerNorm, normalised lazily chunk by chunk."""
@@ -286,3 +293,16 @@ class PolycubeNet(nn.Module):
 
 def count_parameters(module: nn.Module) -> int:
     return sum(p.numel() for p in module.parameters())
+
+
+def grow_identity(model: nn.Module, fresh: set[str]) -> list[str]:
+    """Make every latent layer of ``model`` whose parameters are all in ``fresh`` (names of the
+    ``state_dict`` not taken from an ``--init`` file) an identity (:meth:`LatentLayer.make_identity`),
+    so that a deeper model started from a shallower one computes what that one computed.  Returns the
+    names of the layers it changed."""
+    grown = []
+    for name, mod in model.named_modules():
+        if isinstance(mod, LatentLayer) and all(f"{name}.{k}" in fresh for k in mod.state_dict()):
+            mod.make_identity()
+            grown.append(name)
+    return grown
