@@ -143,7 +143,8 @@ def extraction_config(source: str, config):
     pays back: with them, `auto` on the examples rose from 1.00 to 1.44 x the classical wall time (bushing's
     and flange's second draws, 4.8 % and 1.1 % off the part, 19 s each), while on never-seen mixed seeds 61
     and 67 no part was meshed by a second draw that needed them (session 15)."""
-    if refinement(source)[0] == "learned" and refinement(source)[1]:
+    kind, k = refinement(source)
+    if kind == "learned" and k:
         return dataclasses.replace(config, extract=config.extract.for_exact_clouds())
     return config
 
