@@ -33,7 +33,7 @@ FLAGS1=${FLAGS1:-}  # synth flags of the first set (e.g. "--cad-features --whole
 FLAGS2=${FLAGS2:---cad-features --whole-slants}  # of the second (session 11 used --cad-features alone)
 COUNT=${COUNT:-16384}  # pairs per set (the training uses what exists so far)
 # PER_SHARD (default 256): pairs per shard; 64 lets a short lease start training within ~40 s.
-# MINSHARDS (default 12): finished shards the training waits for
+# MINSHARDS (default 12): finished shards the training waits for; WORKERS (default 7): processes per set
 CKPT=polycubenet/checkpoints/polycubenet-cpu.pt  # its recipe is the run's
 INIT=${INIT:-$CKPT}  # the weights the run starts from, e.g. the committed continue file
 EVAL=${EVAL:-}  # a held-out shard folder carried along (its loss is logged)
@@ -46,8 +46,8 @@ start)
   # (the same points, ~5x slower; session 7 ran before it existed, with --sampler uniform)
   SYNTH="$PY -m polycubenet.synth --n-cond 2048 --n-target 2048 --per-shard ${PER_SHARD:-256} --no-progress ${SAMPLER:+--sampler $SAMPLER}"
   read -r S1 S2 <<< "$SEEDS"
-  [ -n "${NOGEN:-}" ] || setsid nohup $SYNTH --out "$D/g$S1" --count "$COUNT" --seed "$S1" --workers 7 $FLAGS1 > "$D/g$S1.out" 2>&1 &
-  [ -n "${NOGEN:-}" ] || setsid nohup $SYNTH --out "$D/g$S2" --count "$COUNT" --seed "$S2" --workers 7 $FLAGS2 > "$D/g$S2.out" 2>&1 &
+  [ -n "${NOGEN:-}" ] || setsid nohup $SYNTH --out "$D/g$S1" --count "$COUNT" --seed "$S1" --workers ${WORKERS:-7} $FLAGS1 > "$D/g$S1.out" 2>&1 &
+  [ -n "${NOGEN:-}" ] || setsid nohup $SYNTH --out "$D/g$S2" --count "$COUNT" --seed "$S2" --workers ${WORKERS:-7} $FLAGS2 > "$D/g$S2.out" 2>&1 &
   [ -n "${NOGEN:-}" ] || setsid nohup bash -c "while true; do for s in $S1 $S2; do for f in $D/g\$s/shard-*.npz; do [ -e \$f ] || continue;
       b=\$(basename \$f); [ -e $D/mix/shard-\$s\${b#shard-} ] || ln -s \$f $D/mix/shard-\$s\${b#shard-}; done; done;
       sleep 5; done" > /dev/null 2>&1 &

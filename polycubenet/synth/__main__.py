@@ -36,6 +36,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-strength", type=float, default=None,
                    help="cap on the random strength of the global maps (0.35: the mild bends, tapers and shears "
                         "of machined parts; default: no cap)")
+    p.add_argument("--tall-bosses", action="store_true",
+                   help="more and taller bosses (posts up to about the stock's height); with --cad-features most "
+                        "are rounded (see make_pair)")
     p.add_argument("--overwrite", action="store_true", help="regenerate existing shards / replace another dataset")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -49,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
             args.out, args.count, args.seed, per_shard=args.per_shard, n_cond=args.n_cond,
             n_target=args.n_target, workers=args.workers, sampler=args.sampler,
             edge_length=args.edge_length, full=args.full, overwrite=args.overwrite, cad_features=args.cad_features,
-            whole_slants=args.whole_slants, max_strength=args.max_strength,
+            whole_slants=args.whole_slants, max_strength=args.max_strength, tall_bosses=args.tall_bosses,
             progress=not args.no_progress,
         )
     except ValueError as exc:

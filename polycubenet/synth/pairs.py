@@ -216,6 +216,7 @@ def make_pair(
     cad_features: bool = False,
     whole_slants: bool = False,
     max_strength: float | None = None,
+    tall_bosses: bool = False,
 ) -> SynthPair:
     """Generate one pair from ``seed`` (see the module docstring for the steps).
 
@@ -238,6 +239,8 @@ def make_pair(
         a seed gives the pair it gave before this option existed.
     max_strength : float or None, cap on the random strength of the global maps
         (``random_deformation(max_strength=...)``: 0.35 for machined-like parts); None: no cap.
+    tall_bosses : bool, more and taller bosses (:func:`~polycubenet.synth.polycube.random_polycube`); with
+        ``cad_features`` most are rounded into posts.  Off, a seed gives the pair it gave before.
 
     Returns
     -------
@@ -252,7 +255,7 @@ def make_pair(
     timings = {"polycube": 0.0, "deformation": 0.0, "frame": 0.0, "sampling": 0.0}
     for attempt in range(1, max_attempts + 1):
         t0 = time.perf_counter()
-        pc = random_polycube(rng, style=style, n_holes=n_holes)
+        pc = random_polycube(rng, style=style, n_holes=n_holes, tall_bosses=tall_bosses)
         V0, Q = polycube_quads(pc.xs, pc.ys, pc.zs, pc.occupancy, h=edge_length)
         lo, hi = pc.bounds
         rounded = ("through_hole", "pocket", "boss") if cad_features else ("through_hole", "pocket")

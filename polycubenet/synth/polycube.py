@@ -272,6 +272,7 @@ def random_polycube(
     n_holes: int | None = None,
     max_tries: int = 50,
     min_width: float = MIN_WIDTH,
+    tall_bosses: bool = False,
 ) -> RandomPolycube:
     """A random valid polycube, machined-part style.
 
@@ -283,20 +284,23 @@ def random_polycube(
         the genus is measured afterwards, not assumed
     max_tries : int, whole-part retries if the stock ends up degenerate
     min_width : float, thinnest interval relative to the bounding-box diagonal
+    tall_bosses : bool, more bosses (at least one other feature, bosses twice as likely) and taller ones:
+        each end's margin layers 0.6-3 stock widths instead of 0.6 (posts and bosses up to about the
+        stock's height, as machined parts have).  Off, the random stream is the one before this option.
 
     Returns
     -------
     RandomPolycube, normalized (bounding box centred at 0, diagonal 1)
     """
     for _ in range(max_tries):
-        pc = _random_polycube_once(rng, style, n_holes, min_width)
+        pc = _random_polycube_once(rng, style, n_holes, min_width, tall_bosses)
         if pc is not None:
             return pc
     raise RuntimeError("random_polycube: no valid polycube")  # pragma: no cover - never seen
 
 
 def _random_polycube_once(
-    rng: np.random.Generator, style: str | None, n_holes: int | None, min_width: float
+    rng: np.random.Generator, style: str | None, n_holes: int | None, min_width: float, tall_bosses: bool = False
 ) -> RandomPolycube | None:
     if style is None:
         style = str(rng.choice(_STYLES, p=_STYLE_P))
@@ -343,9 +347,10 @@ def _random_polycube_once(
             if b.through_hole(axis):
                 break
 
-    n_other = int(rng.integers(0, 5))
+    n_other = int(rng.integers(1 if tall_bosses else 0, 5))
     kinds = ("pocket", "slot", "notch", "step", "boss", "arch")
-    kind_p = np.array([0.22, 0.15, 0.15, 0.18, 0.2, 0.1])
+    kind_p = np.array([0.22, 0.15, 0.15, 0.18, 0.4 if tall_bosses else 0.2, 0.1])
+    kind_p = kind_p / kind_p.sum()
     for _ in range(n_other):
         kind = str(rng.choice(kinds, p=kind_p))
         axis = int(rng.integers(3))
@@ -369,8 +374,8 @@ def _random_polycube_once(
     # bosses and arches sit in the margin layers: make them a bit lower than stock layers
     for a in range(3):
         w = np.diff(coords[a])
-        w[: _MARGIN] *= 0.6
-        w[-_MARGIN:] *= 0.6
+        w[: _MARGIN] *= rng.uniform(0.6, 3.0) if tall_bosses else 0.6
+        w[-_MARGIN:] *= rng.uniform(0.6, 3.0) if tall_bosses else 0.6
         coords[a] = np.concatenate([[0.0], np.cumsum(w)])
     coords = _enforce_min_width(coords, min_width)
     (cx, cy, cz), cocc = compress(coords, occ)

@@ -79,6 +79,7 @@ class ShardParams:
     cad_features: bool = False
     whole_slants: bool = False
     max_strength: float | None = None
+    tall_bosses: bool = False
 
 
 def pair_record(pair: SynthPair, index: int, full: bool = False) -> dict:
@@ -232,7 +233,8 @@ class Shard:
         return make_pair(int(self.arrays["seeds"][k]), n_cond=p["n_cond"], n_target=p["n_target"],
                          sampler=p["sampler"], edge_length=p["edge_length"],
                          cad_features=bool(p.get("cad_features", False)),
-                         whole_slants=bool(p.get("whole_slants", False)), max_strength=p.get("max_strength"))
+                         whole_slants=bool(p.get("whole_slants", False)), max_strength=p.get("max_strength"),
+                         tall_bosses=bool(p.get("tall_bosses", False)))
 
 
 def load_shard(path: str | Path) -> Shard:
@@ -258,7 +260,8 @@ def _make_record(task: tuple[int, int, ShardParams]) -> dict:
     dataset_seed, index, params = task
     pair = make_pair(pair_seed(dataset_seed, index), n_cond=params.n_cond, n_target=params.n_target,
                      sampler=params.sampler, edge_length=params.edge_length, cad_features=params.cad_features,
-                     whole_slants=params.whole_slants, max_strength=params.max_strength)
+                     whole_slants=params.whole_slants, max_strength=params.max_strength,
+                     tall_bosses=params.tall_bosses)
     return pair_record(pair, index, full=params.full)
 
 
@@ -288,6 +291,7 @@ def write_dataset(
     cad_features: bool = False,
     whole_slants: bool = False,
     max_strength: float | None = None,
+    tall_bosses: bool = False,
 ) -> list[Path]:
     """Generate ``count`` pairs into ``out/shard-*.npz`` plus ``out/dataset.json``.
 
@@ -311,6 +315,7 @@ def write_dataset(
     cad_features : bool, round bosses and slanted ends too (:func:`~polycubenet.synth.pairs.make_pair`)
     whole_slants : bool, whole ends cut by slanted planes too (:func:`~polycubenet.synth.pairs.make_pair`)
     max_strength : float or None, cap on the strength of the global maps (:func:`~polycubenet.synth.pairs.make_pair`)
+    tall_bosses : bool, more and taller bosses (:func:`~polycubenet.synth.pairs.make_pair`)
 
     Returns
     -------
@@ -323,7 +328,8 @@ def write_dataset(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     params = ShardParams(int(n_cond), int(n_target), str(sampler), float(edge_length), bool(full), bool(cad_features),
-                         bool(whole_slants), None if max_strength is None else float(max_strength))
+                         bool(whole_slants), None if max_strength is None else float(max_strength),
+                         bool(tall_bosses))
     n_shards = (count + per_shard - 1) // per_shard
     shards = [
         {"name": f"shard-{k:05d}.npz", "first": k * per_shard, "count": min(per_shard, count - k * per_shard)}
