@@ -1,0 +1,90 @@
+"""Where never-seen parts are lost on the learned path: extraction, validity, faithfulness or quality.
+
+    python benchmarks/unseen_losses.py [RESULT.json ...] [--json benchmarks/results/unseen_losses.json]
+
+Reads the JSON files ``benchmarks/unseen_parts.py --mesh`` writes (default: the five sets whose figures the
+model card reports) and sorts every part meshed through the learned source alone into one bucket:
+
+* ``meshed``: valid, within the Hausdorff bar of the part and at least the quality bar (what the figure counts);
+* ``rejected at extraction``: both draws' clouds gave no acceptable polycube (no mesh at all);
+* ``not valid``: a polycube was accepted but its best mesh has an inverted hex;
+* ``off the part``: valid, but farther from the part than the bar (:data:`polycubenet.tol.HAUSDORFF_REL_MAX`),
+  split by how far (a polycube whose structure misses or adds a feature lands here);
+* ``under the quality bar``: valid and faithful, minimum scaled Jacobian under ``PipelineConfig.min_sj``.
+
+No model is run: it reads what the meshing runs recorded, so it costs nothing and says which stage a change
+should aim at.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import Counter
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+DEFAULT = ["unseen_parts.json", "unseen_parts_mixed.json", "unseen_parts_mixed31.json",
+           "unseen_parts_mixed53.json", "unseen_parts_mixed71.json"]
+BUCKETS = ("meshed", "rejected at extraction", "not valid", "off the part <= 1.5 %", "off the part 1.5-3 %",
+           "off the part > 3 %", "under the quality bar")
+
+
+def bucket(row: list, min_sj: float, bar: float) -> str:
+    """The bucket of one ``mesh`` row of ``unseen_parts.py`` (ok, SJ min or the exception's name, draw,
+    seconds, Hausdorff / diagonal, why the first draw was left, map)."""
+    ok, sj, _draw, _s, dist = row[:5]
+    if ok:
+        return "meshed"
+    if sj is None or isinstance(sj, str):
+        return "rejected at extraction"
+    if sj <= 0:
+        return "not valid"
+    if dist is not None and dist > bar:
+        return ("off the part <= 1.5 %" if dist <= 0.015 else "off the part 1.5-3 %" if dist <= 0.03
+                else "off the part > 3 %")
+    if sj < min_sj:
+        return "under the quality bar"
+    return "not valid"  # pragma: no cover - a row the meshing run marked failed for another reason
+
+
+def main(argv=None) -> int:
+    from polycubenet import tol
+    from polycubenet.atomic import write_json
+    from polycubenet.pipeline import PipelineConfig
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("results", nargs="*", help="unseen_parts.py --mesh JSON files (default: the model card's five)")
+    ap.add_argument("--json", default=str(ROOT / "benchmarks/results/unseen_losses.json"))
+    args = ap.parse_args(argv)
+    files = [Path(f) for f in args.results] or [ROOT / "benchmarks/results" / f for f in DEFAULT]
+    min_sj, bar = PipelineConfig().min_sj, tol.HAUSDORFF_REL_MAX
+    table, total, ex_total = {}, Counter(), Counter()
+    for f in files:
+        d = json.loads(f.read_text())
+        if not d.get("mesh"):
+            print(f"{f}: no meshing rows (run unseen_parts.py with --mesh)", file=sys.stderr)
+            return 2
+        c = Counter(bucket(r, min_sj, bar) for r in d["mesh"].values())
+        table[f"{d['family']}:{d['seed']}"] = dict(c)
+        total.update(c)
+        if not ex_total:  # the examples are the same ten parts in every file: count them once
+            ex_total.update(bucket(r, min_sj, bar) for r in d.get("example_mesh", {}).values())
+    cols = list(table) + ["all", "examples"]
+    print(f"{'bucket':<26}" + "".join(f"{c:>11}" for c in cols))
+    for b in BUCKETS:
+        cells = [table[c].get(b, 0) for c in table] + [total.get(b, 0), ex_total.get(b, 0)]
+        print(f"{b:<26}" + "".join(f"{v:>11d}" for v in cells))
+    n, ne = sum(total.values()), sum(ex_total.values())
+    print(f"{'parts':<26}" + "".join(f"{sum(table[c].values()):>11d}" for c in table) + f"{n:>11d}{ne:>11d}")
+    write_json(args.json, {"files": [str(f.relative_to(ROOT)) if f.is_relative_to(ROOT) else str(f) for f in files],
+                           "min_sj": min_sj, "hausdorff_bar": bar, "sets": table, "all": dict(total),
+                           "examples": dict(ex_total)})
+    print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

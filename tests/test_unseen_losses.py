@@ -1,0 +1,43 @@
+"""benchmarks/unseen_losses.py: every learned-path miss lands in the stage that lost it."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+import unseen_losses  # noqa: E402
+
+# rows as unseen_parts.py --mesh records them: ok, SJ min (or the exception's name), draw, seconds, Hausdorff
+# / diagonal, why the first draw was left, map
+ROWS = {
+    "kept": [True, 0.31, 1, 5.0, 0.004, None, "registration"],
+    "no polycube": [False, "PolycubeError", None, 1.2, None, "p.step: polycube genus 0 differs", None],
+    "inverted": [False, -0.4, None, 9.0, 0.05, "pullback: not valid", "registration"],
+    "a little off": [False, 0.30, None, 9.0, 0.012, "pullback: 1.2 % off", "registration"],
+    "off": [False, 0.30, None, 9.0, 0.024, "pullback: 2.4 % off", "registration"],
+    "far off": [False, 0.30, None, 9.0, 0.05, "pullback: 5 % off", "registration"],
+    "poor": [False, 0.12, None, 9.0, 0.004, None, "exact (realised)"],
+}
+WANT = {"kept": "meshed", "no polycube": "rejected at extraction", "inverted": "not valid",
+        "a little off": "off the part <= 1.5 %", "off": "off the part 1.5-3 %", "far off": "off the part > 3 %",
+        "poor": "under the quality bar"}
+
+
+def test_each_miss_is_put_in_the_stage_that_lost_it():
+    assert {k: unseen_losses.bucket(r, 0.2, 0.01) for k, r in ROWS.items()} == WANT
+
+
+def test_the_table_counts_sets_and_examples_once(tmp_path, capsys):
+    files = []
+    for seed in (1, 2):
+        f = tmp_path / f"u{seed}.json"
+        f.write_text(json.dumps({"family": "mixed", "seed": seed, "mesh": ROWS, "example_mesh": {"a": ROWS["kept"]}}))
+        files.append(str(f))
+    out = tmp_path / "losses.json"
+    assert unseen_losses.main(files + ["--json", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert res["all"]["meshed"] == 2 and res["all"]["off the part > 3 %"] == 2 and sum(res["all"].values()) == 14
+    assert res["examples"] == {"meshed": 1}
+    assert res["sets"]["mixed:2"]["rejected at extraction"] == 1
