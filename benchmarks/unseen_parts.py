@@ -117,13 +117,14 @@ def make_parts(folder: Path, count: int, seed: int, family: str = "blocks") -> l
     return out
 
 
-def mesh_learned(paths: list[Path], checkpoint: str, steps: int) -> dict:
+def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int = 0) -> dict:
     """Mesh through the learned source only (``--polycube learned``: the first draw at ``steps``,
     then the model's second draw when the policy has one; no classical fallback), as
     ``mesh_part`` does: name -> (valid, faithful and at least the quality bar ``min_sj``, SJ min,
     which draw was kept: 1, 2 or None, seconds, the mesh's distance to the part (Hausdorff /
     diagonal), why the first draw was left, the map that made the kept mesh: ``registration`` or
-    ``exact (realised)``, :func:`polycubenet.pipeline.pull_back_learned`)."""
+    ``exact (realised)``, :func:`polycubenet.pipeline.pull_back_learned`).  ``draw_seed``: the model's noise
+    seed (``ModelSource(seed=...)``; 0 as the pipeline runs it), to see what other draws would give."""
     from polycubenet.inference import ModelSource
     from polycubenet.pipeline import PipelineConfig, mesh_part
     from polycubenet.policy import faithful
@@ -133,7 +134,7 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int) -> dict:
     for p in paths:
         t0 = time.perf_counter()
         try:
-            r = mesh_part(p, ModelSource(checkpoint, steps=steps, device="cpu"), cfg)
+            r = mesh_part(p, ModelSource(checkpoint, steps=steps, seed=draw_seed, device="cpu"), cfg)
             q = r.report
             ok = bool(q is not None and q.valid and r.provenance == "learned" and faithful(r.mesh.meta)
                       and (cfg.min_sj is None or (q.sj_min is not None and q.sj_min >= cfg.min_sj)))
@@ -163,6 +164,8 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=None,
                     help="DDIM steps (default: the checkpoint's own default_steps, as mesh_part uses)")
     ap.add_argument("--mesh", action="store_true", help="also mesh every part and example through the learned source alone (both draws)")
+    ap.add_argument("--draw-seed", type=int, default=0,
+                    help="the model's noise seed for --mesh (0: as the pipeline draws; others: what further draws give)")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/unseen_parts.json"))
     args = ap.parse_args(argv)
     from polycubenet.inference import resolve_steps
@@ -175,8 +178,8 @@ def main(argv=None) -> int:
     for r, (_, desc) in zip(rows, made):
         r["shape"] = desc
     examples = sorted((ROOT / "examples/parts").glob("*.step"))
-    meshed = mesh_learned([p for p, _ in made], args.checkpoint, args.steps) if args.mesh else {}
-    ex_meshed = mesh_learned(examples, args.checkpoint, args.steps) if args.mesh else {}
+    meshed = mesh_learned([p for p, _ in made], args.checkpoint, args.steps, args.draw_seed) if args.mesh else {}
+    ex_meshed = mesh_learned(examples, args.checkpoint, args.steps, args.draw_seed) if args.mesh else {}
     ex_rows, _ = part_rows(args.checkpoint, examples, 4096, args.steps)
     print(f"\n{'part':<18} {'genus':>5} {'first draw':<28} {'learned mesh: SJ, Hausdorff':<28} shape")
     for r in rows:
@@ -200,6 +203,7 @@ def main(argv=None) -> int:
               f"({u1} by the first draw, {ur} realised exactly), examples {e}/{len(examples)} ({e1} by the first "
               f"draw, {er} realised exactly)")
     write_json(args.json, {"checkpoint": args.checkpoint, "seed": args.seed, "family": args.family, "count": len(rows), "steps": args.steps,
+                           "draw_seed": args.draw_seed,
                            "accepted": acc, "examples_accepted": ex_acc, "examples": len(ex_rows),
                            "meshed_valid": counts(meshed)[1] if meshed else None,
                            "meshed_first_draw": counts(meshed)[0] if meshed else None,
