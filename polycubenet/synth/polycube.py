@@ -349,8 +349,10 @@ def _random_polycube_once(
 
     n_other = int(rng.integers(1 if tall_bosses else 0, 5))
     kinds = ("pocket", "slot", "notch", "step", "boss", "arch")
-    kind_p = np.array([0.22, 0.15, 0.15, 0.18, 0.4 if tall_bosses else 0.2, 0.1])
-    kind_p = kind_p / kind_p.sum()
+    kind_p = np.array([0.22, 0.15, 0.15, 0.18, 0.2, 0.1])
+    if tall_bosses:  # bosses twice as likely (off: the very same probabilities as before the option)
+        kind_p[4] = 0.4
+        kind_p = kind_p / kind_p.sum()
     for _ in range(n_other):
         kind = str(rng.choice(kinds, p=kind_p))
         axis = int(rng.integers(3))
