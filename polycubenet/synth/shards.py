@@ -229,12 +229,9 @@ class Shard:
 
     def regenerate(self, k: int) -> SynthPair:
         """Rebuild the full pair ``k`` (meshes, map, float64 samples) from its seed."""
-        p = self.meta["params"]
-        return make_pair(int(self.arrays["seeds"][k]), n_cond=p["n_cond"], n_target=p["n_target"],
-                         sampler=p["sampler"], edge_length=p["edge_length"],
-                         cad_features=bool(p.get("cad_features", False)),
-                         whole_slants=bool(p.get("whole_slants", False)), max_strength=p.get("max_strength"),
-                         tall_bosses=bool(p.get("tall_bosses", False)))
+        # a shard written before a parameter existed has that parameter's default
+        params = ShardParams(**{**dataclasses.asdict(ShardParams()), **self.meta["params"]})
+        return _generate(int(self.arrays["seeds"][k]), params)
 
 
 def load_shard(path: str | Path) -> Shard:
@@ -256,13 +253,17 @@ def iter_pairs(directory: str | Path) -> Iterator[dict]:
 # --------------------------------------------------------------------------- writing
 
 
-def _make_record(task: tuple[int, int, ShardParams]) -> dict:
-    dataset_seed, index, params = task
-    pair = make_pair(pair_seed(dataset_seed, index), n_cond=params.n_cond, n_target=params.n_target,
-                     sampler=params.sampler, edge_length=params.edge_length, cad_features=params.cad_features,
+def _generate(seed: int, params: ShardParams) -> SynthPair:
+    """The pair of ``seed`` made with a dataset's shared parameters (writing and :meth:`Shard.regenerate`)."""
+    return make_pair(seed, n_cond=params.n_cond, n_target=params.n_target, sampler=params.sampler,
+                     edge_length=params.edge_length, cad_features=params.cad_features,
                      whole_slants=params.whole_slants, max_strength=params.max_strength,
                      tall_bosses=params.tall_bosses)
-    return pair_record(pair, index, full=params.full)
+
+
+def _make_record(task: tuple[int, int, ShardParams]) -> dict:
+    dataset_seed, index, params = task
+    return pair_record(_generate(pair_seed(dataset_seed, index), params), index, full=params.full)
 
 
 def _init_worker() -> None:  # pragma: no cover - runs in child processes
