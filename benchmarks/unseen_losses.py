@@ -6,7 +6,7 @@ Reads the JSON files ``benchmarks/unseen_parts.py --mesh`` writes (default: the 
 model card reports) and sorts every part meshed through the learned source alone into one bucket:
 
 * ``meshed``: valid, within the Hausdorff bar of the part and at least the quality bar (what the figure counts);
-* ``rejected at extraction``: both draws' clouds gave no acceptable polycube (no mesh at all);
+* ``rejected at extraction``: every draw's cloud gave no acceptable polycube (no mesh at all);
 * ``not valid``: a polycube was accepted but its best mesh has an inverted hex;
 * ``off the part``: valid, but farther from the part than the bar (:data:`polycubenet.tol.HAUSDORFF_REL_MAX`),
   split by how far (a polycube whose structure misses or adds a feature lands here);

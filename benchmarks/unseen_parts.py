@@ -10,7 +10,7 @@ Builds ``--count`` new CAD-like parts with gmsh's OpenCASCADE kernel, each from 
 For each part it runs the learned source exactly as ``mesh_part`` does (the shipped
 checkpoint, its default steps, 4096 learned points): generate, outlier filter, structure
 extraction with the part's genus; ``--mesh`` also meshes every part (and the examples) through
-the learned source alone as ``mesh_part`` runs it (first draw, then the model's second draw:
+the learned source alone as ``mesh_part`` runs it (first draw, then the model's further draws:
 ``polycubenet.policy.LEARNED_DRAWS``) and counts the valid meshes within the Hausdorff bar, and
 how many of them the first draw gave.  Prints one row per part and the accepted fraction,
 beside the same measure on the 10 example parts; writes the JSON.
@@ -119,15 +119,15 @@ def make_parts(folder: Path, count: int, seed: int, family: str = "blocks") -> l
 
 def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int = 0) -> dict:
     """Mesh through the learned source only (``--polycube learned``: the first draw at ``steps``,
-    then the model's second draw when the policy has one; no classical fallback), as
+    then the model's further draws, ``polycubenet.policy.LEARNED_DRAWS``; no classical fallback), as
     ``mesh_part`` does: name -> (valid, faithful and at least the quality bar ``min_sj``, SJ min,
-    which draw was kept: 1, 2 or None, seconds, the mesh's distance to the part (Hausdorff /
+    which draw was kept: 1, 2, ... or None, seconds, the mesh's distance to the part (Hausdorff /
     diagonal), why the first draw was left, the map that made the kept mesh: ``registration`` or
     ``exact (realised)``, :func:`polycubenet.pipeline.pull_back_learned`).  ``draw_seed``: the model's noise
     seed (``ModelSource(seed=...)``; 0 as the pipeline runs it), to see what other draws would give."""
     from polycubenet.inference import ModelSource
     from polycubenet.pipeline import PipelineConfig, mesh_part
-    from polycubenet.policy import faithful
+    from polycubenet.policy import faithful, refinement
 
     res = {}
     cfg = PipelineConfig(polycube="learned", target_hexes=3000)
@@ -138,7 +138,7 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
             q = r.report
             ok = bool(q is not None and q.valid and r.provenance == "learned" and faithful(r.mesh.meta)
                       and (cfg.min_sj is None or (q.sj_min is not None and q.sj_min >= cfg.min_sj)))
-            draw = 1 if r.fallback_reason is None else 2
+            draw = 1 + refinement(r.source)[1] if r.source else None
             dist = r.row()["hausdorff"]
             res[p.stem] = (ok, None if q is None else q.sj_min, draw if ok else None,
                            round(time.perf_counter() - t0, 1), None if dist is None else round(float(dist), 4),
@@ -163,7 +163,7 @@ def main(argv=None) -> int:
     ap.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT))
     ap.add_argument("--steps", type=int, default=None,
                     help="DDIM steps (default: the checkpoint's own default_steps, as mesh_part uses)")
-    ap.add_argument("--mesh", action="store_true", help="also mesh every part and example through the learned source alone (both draws)")
+    ap.add_argument("--mesh", action="store_true", help="also mesh every part and example through the learned source alone (every draw)")
     ap.add_argument("--draw-seed", type=int, default=0,
                     help="the model's noise seed for --mesh (0: as the pipeline draws; others: what further draws give)")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/unseen_parts.json"))

@@ -200,6 +200,8 @@ class PartResult:
     surface: tuple[np.ndarray, np.ndarray] | None = None
     provenance: str | None = None
     fallback_reason: str | None = None
+    #: the source whose mesh was kept (``"learned"``, ``"learned+2"``, ``"voxel+1"``, ...: policy.source_names)
+    source: str | None = None
 
     def row(self) -> dict:
         """One manifest row (plain types)."""
@@ -341,6 +343,7 @@ def mesh_surface(
         res.cloud, res.polycube = cloud, poly
         res.provenance = cloud.meta.get("provenance")
         res.fallback_reason = outcome.fallback_reason
+        res.source = outcome.chosen.source
         with clock("report"):
             mesh = HexMesh(T.inverse(mesh_c.points), mesh_c.hexes, mesh_c.boundary, meta=dict(mesh_c.meta))
             Vo = np.asarray(V, float) if not canonical else Vc

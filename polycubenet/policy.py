@@ -67,14 +67,18 @@ from .errors import PartError, PolycubeError
 MODES = ("auto", "learned", "classical", "voxel")
 #: finer voxel polycubes after the first one (``voxel+1`` ... ``voxel+3``)
 VOXEL_REFINEMENTS = 3
-#: the model's further draws after its first, in order: ``(DDIM steps, seed offset)`` of ``learned+1``,
-#: ``learned+2``, ...  (a draw never uses fewer steps than the first; one that would repeat the first is
-#: skipped, :func:`learned_draws`).  Measured on never-seen parts meshed valid, faithful and >= 0.2
-#: through the learned source (of 16, ``benchmarks/unseen_parts.py --mesh``): session 9, one 4-step draw
-#: after the first: blocks 9 -> 12, mixed 5 -> 7 and 5 -> 5.  Session 12, two more 4-step draws (seeds
-#: +1, +2) with the 21.00 h file: mixed seed 11 6 -> 7, seed 41 (first 10 parts) 3 -> 3, while a draw
-#: that passes extraction and then misses the part costs a pull-back (10-25 s a draw): not kept
-LEARNED_DRAWS = ((4, 0),)
+#: the model's further draws after its first, in order: ``(DDIM steps, seed offset, generator fallbacks)`` of
+#: ``learned+1``, ``learned+2``, ...  (a draw never uses fewer steps than the first; one that would repeat the
+#: first is skipped, :func:`learned_draws`; the fallbacks: :func:`extraction_config`).  Measured on never-seen
+#: parts meshed valid, faithful and >= 0.2 through the learned source (of 16, ``benchmarks/unseen_parts.py
+#: --mesh``): session 9, one 4-step draw after the first: blocks 9 -> 12, mixed 5 -> 7 and 5 -> 5.  Session 12,
+#: two more 4-step draws (seeds +1, +2) with the 21.00 h file: mixed seed 11 6 -> 7, seed 41 (first 10 parts)
+#: 3 -> 3: not kept.  Session 18, each draw alone on the dev sets (mixed 61 + 67, 32 parts, used for no reported
+#: figure; the shipped file): 1 step at seeds +0/+1/+2 with the fallbacks 12/12/13, 4 steps without them at
+#: seeds +0/+1/+2 13/6/9; in order, 1:+0 then 4:+0 15 (401 s learned-only), then 1 step at seed +1 with the
+#: fallbacks 17 (575 s), then 4:+2 18 (647 s), nothing more from 4:+1 or 1:+2 (``benchmarks/results/
+#: dev_draws_s18.json``): the third draw kept, the fourth not (+1 of 32 for 72 s)
+LEARNED_DRAWS = ((4, 0, False), (1, 1, True))
 #: the very last source, ``voxel+3*``: the finest voxel polycube partitioned into this many times the hexes
 DENSER_HEXES = 1.5
 
@@ -99,6 +103,13 @@ def draw_seed(source: str) -> int:
     entry's for ``learned+K``."""
     k = refinement(source)[1]
     return LEARNED_DRAWS[k - 1][1] if k else 0
+
+
+def draw_fallbacks(source: str) -> bool:
+    """Whether a learned source's draw is extracted with the generator fallbacks: always the first draw
+    (``learned``), a further draw when its :data:`LEARNED_DRAWS` entry says so."""
+    k = refinement(source)[1]
+    return bool(LEARNED_DRAWS[k - 1][2]) if k else True
 
 
 def learned_draws(steps) -> tuple[int, ...]:
@@ -137,14 +148,16 @@ def source_config(source: str, config):
 
 def extraction_config(source: str, config):
     """The pipeline config ``source``'s cloud is extracted with: ``config`` itself, or for the model's
-    further draws (``learned+K``) its extraction without the generator fallbacks
-    (:meth:`~polycubenet.structure.ExtractConfig.for_exact_clouds`), which only the first draw gets.
-    A further draw that passes extraction only through them costs a pull-back and a realisation it rarely
+    further draws (``learned+K``) whose :data:`LEARNED_DRAWS` entry has no generator fallbacks
+    (:func:`draw_fallbacks`) its extraction without them
+    (:meth:`~polycubenet.structure.ExtractConfig.for_exact_clouds`).
+    A 4-step draw that passes extraction only through them costs a pull-back and a realisation it rarely
     pays back: with them, `auto` on the examples rose from 1.00 to 1.44 x the classical wall time (bushing's
     and flange's second draws, 4.8 % and 1.1 % off the part, 19 s each), while on never-seen mixed seeds 61
-    and 67 no part was meshed by a second draw that needed them (session 15)."""
+    and 67 no part was meshed by a second draw that needed them (session 15).  A one-step draw at another
+    seed is the first draw's kind of cloud and gets them, as the first draw does (session 18)."""
     kind, k = refinement(source)
-    if kind == "learned" and k:
+    if kind == "learned" and k and not draw_fallbacks(source):
         return dataclasses.replace(config, extract=config.extract.for_exact_clouds())
     return config
 
@@ -156,7 +169,8 @@ def source_label(source: str) -> str:
     base, k = refinement(source)
     if base == "learned" and k:
         seed = f", seed +{draw_seed(source)}" if draw_seed(source) else ""
-        return f"learned (draw {k + 1}, {LEARNED_DRAWS[k - 1][0]} steps{seed})"
+        n = LEARNED_DRAWS[k - 1][0]
+        return f"learned (draw {k + 1}, {n} step{'s' if n != 1 else ''}{seed})"
     if denser(source):
         return f"{base} (refinement {k}, {DENSER_HEXES:g}x hexes)"
     return f"{base} (refinement {k})" if k else source

@@ -241,9 +241,9 @@ def test_model_source_further_draws_and_their_place_in_the_chain(ckpt, monkeypat
     from polycubenet import policy
     from polycubenet.pipeline import source_chain
 
-    assert ModelSource(ckpt, steps=1, device="cpu").further_draws() == (1,)  # the shipped table
-    assert ModelSource(ckpt, steps=4, device="cpu").further_draws() == ()
-    LEARNED_DRAWS = ((4, 0), (4, 1), (4, 2))
+    assert ModelSource(ckpt, steps=1, device="cpu").further_draws() == (1, 2)  # the shipped table
+    assert ModelSource(ckpt, steps=4, device="cpu").further_draws() == (2,)
+    LEARNED_DRAWS = ((4, 0, False), (4, 1, False), (4, 2, False))
     monkeypatch.setattr(policy, "LEARNED_DRAWS", LEARNED_DRAWS)
     src = ModelSource(ckpt, steps=1, seed=2, device="cpu")
     assert src.further_draws() == (1, 2, 3)

@@ -51,7 +51,7 @@ def test_auto_falls_back_when_the_learned_polycube_fails_validation(l_block_file
     cfg = PipelineConfig(polycube="auto", **SMALL)
     res = mesh_part(l_block_file, OracleSource(_torus_like()), cfg)
     assert res.status == "meshed"
-    assert res.provenance == "classical"
+    assert res.provenance == "classical" and res.source == "classical"  # the flattening, not a voxel refinement
     assert "genus 1 differs from the part's genus 0" in res.fallback_reason
     assert res.fallback_reason.startswith("learned polycube rejected at extract:")
     assert res.polycube.meta["provenance"] == "classical" and res.polycube.meta["genus"] == 0
@@ -157,7 +157,7 @@ def _l_truth(l_block_file) -> Polycube:
 
 def test_auto_keeps_a_valid_learned_polycube(l_block_file):
     res = mesh_part(l_block_file, OracleSource(_l_truth(l_block_file)), PipelineConfig(polycube="auto", **SMALL))
-    assert res.provenance == "oracle" and res.fallback_reason is None
+    assert res.provenance == "oracle" and res.fallback_reason is None and res.source == "learned"
     assert res.row()["provenance"] == "oracle" and res.row()["fallback_reason"] is None
     assert not any(k.startswith("rejected_") for k in res.timings)
 

@@ -7,7 +7,7 @@ import pytest
 
 from polycubenet.errors import PartError, PolycubeError
 from polycubenet import policy
-from polycubenet.policy import (LEARNED_DRAWS, Attempt, draw_seed, draw_steps, learned_draws, leaves_source, refinement, run_chain,
+from polycubenet.policy import (LEARNED_DRAWS, Attempt, draw_fallbacks, draw_seed, draw_steps, learned_draws, leaves_source, refinement, run_chain,
                                 source_label, source_names)
 
 
@@ -77,10 +77,15 @@ def test_the_last_source_partitions_the_finest_voxel_polycube_denser():
 
 
 def test_the_models_further_draws_follow_the_first(monkeypatch):
-    # the shipped table: one 4-step draw after a cheaper first, none after a first at 4 steps or more
-    assert LEARNED_DRAWS == ((4, 0),) and learned_draws(1) == (1,) and learned_draws(4) == () == learned_draws(8)
+    # the shipped table: a 4-step draw after a cheaper first, then a one-step draw at another seed; after a
+    # first draw at 4 steps only that one (at 4 steps: never fewer than the first), the 4-step draw at seed +0
+    # would repeat the first
+    assert LEARNED_DRAWS == ((4, 0, False), (1, 1, True))
+    assert learned_draws(1) == (1, 2) and learned_draws(4) == (2,) == learned_draws(8)
+    assert [draw_fallbacks(s) for s in ("learned", "learned+1", "learned+2")] == [True, False, True]
+    assert source_label("learned+2") == "learned (draw 3, 1 step, seed +1)"
     # a longer table: never with fewer steps than the first, never repeating the first
-    monkeypatch.setattr(policy, "LEARNED_DRAWS", ((4, 0), (4, 1), (4, 2)))
+    monkeypatch.setattr(policy, "LEARNED_DRAWS", ((4, 0, False), (4, 1, False), (4, 2, False)))
     assert learned_draws(1) == (1, 2, 3) and learned_draws(4) == (2, 3) and learned_draws("stride4") == ()
     assert [draw_steps(f"learned+{k}", 1) for k in (1, 2, 3)] == [4, 4, 4] and draw_steps("learned", 1) == 1
     assert draw_steps("learned+2", 8) == 8 and learned_draws(8) == (2, 3)  # a run at 8 steps: 8-step draws

@@ -208,10 +208,11 @@ def test_only_a_generated_cloud_gets_the_generator_fallbacks():
         cloud_polycube(PolycubeCloud(P, N, meta={"provenance": "classical"}), P, N, 0, cfg, "part")
 
 
-def test_only_the_first_draw_of_the_model_gets_the_generator_fallbacks():
-    """The model's further draws (``learned+1``...) are extracted bare: the slanted-end cloud that the
-    first draw's extraction flattens into a box is rejected as a second draw's; classical and voxel
-    sources keep the config as it is."""
+def test_only_the_first_draw_and_the_one_step_draws_get_the_generator_fallbacks():
+    """The model's 4-step further draw (``learned+1``) is extracted bare: the slanted-end cloud that the
+    first draw's extraction flattens into a box is rejected as a second draw's; the one-step draw at
+    another seed (``learned+2``) is extracted as the first; classical and voxel sources keep the config
+    as it is."""
     from polycubenet.data import PolycubeCloud
     from polycubenet.pipeline import PipelineConfig, cloud_polycube
     from polycubenet.policy import extraction_config
@@ -223,4 +224,5 @@ def test_only_the_first_draw_of_the_model_gets_the_generator_fallbacks():
     assert first.occupancy.shape == (1, 1, 1) and "ramps" in first.meta
     with pytest.raises(PolycubeError, match="far from the extracted polycube"):
         cloud_polycube(cloud, P, N, 0, extraction_config("learned+1", cfg), "part")
+    assert cloud_polycube(cloud, P, N, 0, extraction_config("learned+2", cfg), "part").occupancy.shape == (1, 1, 1)
     assert extraction_config("classical", cfg) is cfg and extraction_config("voxel+2", cfg) is cfg
