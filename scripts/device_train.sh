@@ -19,7 +19,8 @@
 # shard and linked into
 # $D/mix, which the training re-reads every 200 steps (each shard's arrays are loaded once). The recipe: the
 # shipped checkpoint's, with a GPU-sized batch (BATCH, default 128) and a cosine from LR to ~1e-5 that
-# --fit-steps fits to the time given. Bring the exported last.pt back, then here:
+# --fit-steps fits to the time given (EXTRA: further train flags after the recipe's, e.g. "--points 2048";
+# RUNDIR: the run folder, default $D/run). Bring the exported last.pt back, then here:
 #   scripts/publish_checkpoint.sh <its folder> 1
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -37,7 +38,9 @@ COUNT=${COUNT:-16384}  # pairs per set (the training uses what exists so far)
 CKPT=polycubenet/checkpoints/polycubenet-cpu.pt  # its recipe is the run's
 INIT=${INIT:-$CKPT}  # the weights the run starts from, e.g. the committed continue file
 EVAL=${EVAL:-}  # a held-out shard folder carried along (its loss is logged)
-mkdir -p "$D/mix" "$D/run"
+EXTRA=${EXTRA:-}  # further train flags, after the recipe's (e.g. "--points 2048": they win)
+R=${RUNDIR:-$D/run}  # the run folder
+mkdir -p "$D/mix" "$R"
 case "${1:?start|export|wait}" in
 start)
   MINUTES=${2:?minutes}
@@ -53,15 +56,15 @@ start)
       sleep 5; done" > /dev/null 2>&1 &
   while [ "$(ls "$D/mix" | wc -l)" -lt "${MINSHARDS:-12}" ]; do sleep 5; done
   RECIPE=$("$PY" -c "import sys; from polycubenet.train import recipe_flags; print(' '.join(recipe_flags(sys.argv[1])))" "$CKPT")
-  echo "recipe: $RECIPE --batch $BATCH --lr $LR --init $INIT"
-  $PY -m polycubenet.train --data "$D/mix" --out "$D/run" --init "$INIT" $RECIPE --batch "$BATCH" ${EVAL:+--eval-data $EVAL} \
+  echo "recipe: $RECIPE $EXTRA --batch $BATCH --lr $LR --init $INIT"
+  $PY -m polycubenet.train --data "$D/mix" --out "$R" --init "$INIT" $RECIPE $EXTRA --batch "$BATCH" ${EVAL:+--eval-data $EVAL} \
       --lr "$LR" --min-lr-ratio "$MIN_LR_RATIO" --warmup 300 --steps 100000 --fit-steps True --device cuda:0 --seed 8 \
       --reload-every "${RELOAD:-1000}" --ckpt-every 250 --log-every 100 --no-progress --max-minutes "$MINUTES"
   echo "training done"
   ;;
 export)
   OUTDIR=${2:?folder}
-  $PY - "$D/run/last.pt" "$OUTDIR/last.pt" <<'PYEOF'
+  $PY - "$R/last.pt" "$OUTDIR/last.pt" <<'PYEOF'
 import sys, torch
 s = torch.load(sys.argv[1], map_location="cpu", weights_only=False)
 for k in ("optimizer", "model"):
@@ -69,7 +72,7 @@ for k in ("optimizer", "model"):
 torch.save(s, sys.argv[2])
 print("exported step", s["step"], s.get("metrics"))
 PYEOF
-  cp "$D/run/log.jsonl" "$OUTDIR/" 2>/dev/null; tail -c 20000 "$D/main.out" > "$OUTDIR/main.out" 2>/dev/null
+  cp "$R/log.jsonl" "$OUTDIR/" 2>/dev/null; tail -c 20000 "$D/main.out" > "$OUTDIR/main.out" 2>/dev/null
   tail -qn 1 "$D"/g*.out; ls "$D/mix" | wc -l
   ;;
 wait)

@@ -62,6 +62,8 @@ def test_hybrid_loss_weights(net):
     assert np.ptp(ws) > 0.1  # w really is drawn per iteration
     loss, st = d.training_loss(net, x0, cond, loss="l2", generator=torch.Generator().manual_seed(0))
     assert st["w"] == 1.0 and float(loss.detach()) == pytest.approx(st["l2"], rel=1e-6)
+    loss, st = d.training_loss(net, x0, cond, loss="l1", generator=torch.Generator().manual_seed(0))
+    assert st["w"] == 0.0 and float(loss.detach()) == pytest.approx(st["l1"], rel=1e-6)
     with pytest.raises(ValueError):
         d.training_loss(net, x0, cond, loss="huber")
 

@@ -176,7 +176,7 @@ class Diffusion:
         anchor: torch.Tensor | None = None,
         t_bias: float = 1.0,
     ) -> tuple[torch.Tensor, dict]:
-        """One batch: random t and noise, predict the noise, the hybrid (or l2) loss.
+        """One batch: random t and noise, predict the noise, the hybrid (or l2, or l1) loss.
 
         ``t_bias`` > 1 draws t towards the noisy end: ``t = T (1 - (1 - u)^t_bias)`` with u uniform
         (1: uniform, the paper's).  A model sampled in a few DDIM steps from pure noise spends its
@@ -223,8 +223,10 @@ class Diffusion:
             w = float(0.4 + 0.4 * torch.rand((), generator=generator, device=dev).item())
         elif loss == "l2":
             w = 1.0
+        elif loss == "l1":  # a median rather than a mean: a point whose place is two-valued (a step's edge)
+            w = 0.0  # takes one of them instead of the middle
         else:
-            raise ValueError(f"unknown loss {loss!r} (hybrid, l2)")
+            raise ValueError(f"unknown loss {loss!r} (hybrid, l2, l1)")
         total = w * l2 + (1 - w) * l1
         return total, {"l2": float(l2.detach()), "l1": float(l1.detach()), "w": w}
 
