@@ -34,7 +34,7 @@ from .atomic import write_json
 from .cleanup import remove_outliers
 from .errors import PolycubeError
 from .inference import generate, load_model
-from .polycube import plane_offset, same_structure
+from .polycube import compress, plane_offset, same_structure
 from .structure import extract
 from .synth.shards import list_shards, load_shard
 
@@ -90,6 +90,32 @@ def row_category(row: dict) -> str:
     if not row.get("genus_match"):
         return "genus differs"
     return "exact" if row.get("exact") else "right genus, other structure"
+
+
+#: bin edges of the ground truth's thinnest slab (fraction of the diagonal) for :func:`by_thinnest_slab`; the
+#: generator's floor is 0.025, and 512 training points lie ~0.05 apart on a part of diagonal 1
+SLAB_BINS = (0.03, 0.05)
+
+
+def thinnest_slab(poly) -> float:
+    """The thinnest slab of ``poly``'s minimal grid (:func:`polycubenet.polycube.compress`), in the
+    canonical frame's units (a fraction of the diagonal)."""
+    grid, _ = compress([poly.xs, poly.ys, poly.zs], poly.occupancy)
+    return float(min(np.diff(g).min() for g in grid))
+
+
+def by_thinnest_slab(rows: list[dict], bins: tuple[float, ...] = SLAB_BINS) -> dict:
+    """Exact structure per bin of the ground truth's thinnest slab (``row["gt_thinnest_slab"]``):
+    ``{"< 0.03": {"pairs": n, "exact": rate}, "0.03-0.05": ..., ">= 0.05": ...}`` (``exact`` None for an
+    empty bin).  Says whether a model's misses are the fine features (a slab under the training
+    points' spacing) or the coarse ones."""
+    edges = (-np.inf, *bins, np.inf)
+    out = {}
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        name = f"< {hi:g}" if lo == -np.inf else f">= {lo:g}" if hi == np.inf else f"{lo:g}-{hi:g}"
+        sel = [r for r in rows if lo <= r["gt_thinnest_slab"] < hi]
+        out[name] = {"pairs": len(sel), "exact": float(np.mean([r["exact"] for r in sel])) if sel else None}
+    return out
 
 
 def _pairs(directory: str | Path, count: int):
@@ -174,6 +200,7 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
                                                        s["target_normals"][k])
             if structure:
                 gt = s.polycube(k)
+                row["gt_thinnest_slab"] = thinnest_slab(gt)
                 row.update(_structure(cloud[:, :3].astype(float), cloud[:, 3:].astype(float), gt, row["genus"],
                                       f"pair {row['seed']}"))
                 if identity:  # the trivial reference: the part's own samples and normals as the cloud (no model)
@@ -217,6 +244,7 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
         if identity:
             out["exact_structure_rate_identity"] = float(np.mean([r["exact_identity"] for r in rows]))
             out["same_cells_rate_identity"] = float(np.mean([r["plane_offset_identity"] is not None for r in rows]))
+        out["exact_by_thinnest_slab"] = by_thinnest_slab(rows)
         cats: dict = {}
         for r in rows:
             r["category"] = c = row_category(r)

@@ -1,0 +1,28 @@
+"""The held-out evaluation's breakdown by the ground truth's thinnest slab."""
+import numpy as np
+import pytest
+
+from polycubenet.data import Polycube
+from polycubenet.evaluate import by_thinnest_slab, thinnest_slab
+
+
+def test_thinnest_slab_is_the_minimal_grids():
+    # two equal cells along x: the plane at 0.02 separates nothing, so the minimal grid drops it
+    full = Polycube(np.array([0.0, 0.02, 0.5]), np.array([0.0, 0.3]), np.array([0.0, 0.2]), np.ones((2, 1, 1), bool))
+    assert thinnest_slab(full) == pytest.approx(0.2)
+    # an L: one cell of the 0.02 slab empty along y, so that slab is a real step
+    occ = np.ones((2, 2, 1), bool)
+    occ[0, 1, 0] = False
+    step = Polycube(np.array([0.0, 0.02, 0.5]), np.array([0.0, 0.1, 0.3]), np.array([0.0, 0.2]), occ)
+    assert thinnest_slab(step) == pytest.approx(0.02)
+
+
+def test_by_thinnest_slab_bins_and_rates():
+    rows = [{"gt_thinnest_slab": t, "exact": e} for t, e in
+            [(0.026, True), (0.029, False), (0.029, False), (0.03, True), (0.049, True), (0.05, False), (0.2, True)]]
+    b = by_thinnest_slab(rows)
+    assert list(b) == ["< 0.03", "0.03-0.05", ">= 0.05"]
+    assert b["< 0.03"] == {"pairs": 3, "exact": pytest.approx(1 / 3)}
+    assert b["0.03-0.05"] == {"pairs": 2, "exact": 1.0}  # 0.03 falls in the upper bin
+    assert b[">= 0.05"] == {"pairs": 2, "exact": 0.5}
+    assert by_thinnest_slab(rows[:1])["0.03-0.05"] == {"pairs": 0, "exact": None}
