@@ -433,7 +433,7 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
         realised.meta["realised"] = {k: v for k, v in exact.map.meta.items() if k != "method"}
         realised.meta["realised"]["planar_patches"] = rc.planar_patches
         realised.meta["realised_polycube"] = exact.polycube.to_meta()
-        rank, kept = mesh_rank(realised.meta), mesh_rank(best.meta)
+        rank, kept = mesh_rank(realised.meta, config.min_sj), mesh_rank(best.meta, config.min_sj)
         if rank > kept or (best is mesh and rank == kept):  # a tie with the registration's mesh: the exact map
             best, used = realised, exact.polycube
         if ends_chain(realised.meta, config.min_sj):
@@ -474,7 +474,7 @@ def _pull_back_classical(mesh_pc, corr, Vc, F, config: PipelineConfig, diagonal:
         mesh = pull_back(mesh_pc, corr.map_points, Vc, F,
                          dataclasses.replace(config.pullback, interior=mode, pillow=pillow), diagonal)
         mesh.meta["interior"] = mode
-        if best is None or mesh_rank(mesh.meta) > mesh_rank(best.meta):
+        if best is None or mesh_rank(mesh.meta, config.min_sj) > mesh_rank(best.meta, config.min_sj):
             best = mesh
         good = best.meta.get("valid") and (retry_below is None or ends_chain(best.meta, retry_below))
         if good or not worth_retry(best.meta, config.pullback):

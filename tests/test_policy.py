@@ -237,3 +237,35 @@ def test_an_off_part_mesh_is_still_kept_over_an_invalid_one_and_faithful_meshes_
     attempt, calls = _scripted({"classical": {"valid": True, "sj_min": 0.3, "deviation": 0.009},
                                 "voxel": {"valid": True}})
     assert run_chain(["classical", "voxel"], attempt).chosen.source == "classical" and calls == ["classical"]
+
+
+def test_when_no_mesh_follows_the_part_the_closest_one_above_the_bar_is_kept():
+    # never-seen mixed_61_000 under auto: the learned draw's mesh 2.34 % off at min SJ 0.302, the classical
+    # one 1.33 % off at 0.301, every voxel polycube's farther or not valid: the classical mesh is kept
+    attempt, calls = _scripted({"learned": {"valid": True, "sj_min": 0.302, "hausdorff": 0.0234},
+                                "classical": {"valid": True, "sj_min": 0.301, "hausdorff": 0.0133},
+                                "voxel": {"valid": True, "sj_min": 0.31, "hausdorff": 0.0199},
+                                "voxel+1": {"valid": False, "sj_min": -0.9}})
+    out = run_chain(["learned", "classical", "voxel", "voxel+1"], attempt, min_sj=0.2)
+    assert calls == ["learned", "classical", "voxel", "voxel+1"] and out.chosen.source == "classical"
+    # a closer mesh under the quality bar does not beat a farther one above it
+    attempt, _ = _scripted({"classical": {"valid": True, "sj_min": 0.05, "hausdorff": 0.011},
+                            "voxel": {"valid": True, "sj_min": 0.3, "hausdorff": 0.02}})
+    out = run_chain(["classical", "voxel"], attempt, min_sj=0.2)
+    assert out.chosen.source == "voxel"
+    # the last source's mesh left for a closer earlier one says so; one under the bar says its SJ
+    attempt, _ = _scripted({"classical": {"valid": True, "sj_min": 0.25, "hausdorff": 0.012},
+                            "voxel": {"valid": True, "sj_min": 0.4, "hausdorff": 0.03}})
+    out = run_chain(["classical", "voxel"], attempt, min_sj=0.2)
+    assert out.chosen.source == "classical"
+    assert "voxel polycube's hex mesh is valid but does not follow the part as closely" in out.fallback_reason
+    attempt, _ = _scripted({"classical": {"valid": True, "sj_min": 0.25, "hausdorff": 0.03},
+                            "voxel": {"valid": True, "sj_min": 0.1, "hausdorff": 0.012}})
+    out = run_chain(["classical", "voxel"], attempt, min_sj=0.2)
+    assert out.chosen.source == "classical"
+    assert "voxel polycube's hex mesh is valid but 1.20 % of the diagonal off the part and worse" in out.fallback_reason
+    # faithful meshes still rank by their minimum SJ, and any valid one above an invalid one
+    assert policy.mesh_rank({"valid": True, "sj_min": 0.4, "hausdorff": 0.002}) > policy.mesh_rank(
+        {"valid": True, "sj_min": 0.3, "hausdorff": 0.0001})
+    assert policy.mesh_rank({"valid": True, "sj_min": 0.01, "hausdorff": 0.5}) > policy.mesh_rank(
+        {"valid": False, "sj_min": -0.1, "hausdorff": 0.0})
