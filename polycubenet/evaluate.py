@@ -137,11 +137,25 @@ def _structure(P: np.ndarray, N: np.ndarray, gt, genus: int, part: str) -> dict:
         # rejected (and the extraction retries without its plane filter, see ExtractConfig)
         poly = extract(P, N, genus=genus, part=part)
     except PolycubeError as exc:
-        return {"genus_got": None, "genus_match": False, "exact": False, "plane_offset": None, "error": str(exc)}
+        return {"genus_got": None, "genus_match": False, "exact": False, "plane_offset": None, "planes_added": None,
+                "planes_missed": None, "error": str(exc)}
     got = int(poly.meta["genus"])
+    added, missed = plane_errors(poly, gt)
     # plane_offset: the same cells with planes further than 0.02 away, or (None) other cells
     return {"genus_got": got, "genus_match": got == genus, "exact": got == genus and same_structure(poly, gt, atol=0.02),
-            "plane_offset": plane_offset(poly, gt), "error": None}
+            "plane_offset": plane_offset(poly, gt), "planes_added": added, "planes_missed": missed, "error": None}
+
+
+def plane_errors(poly, gt, tol: float = 0.02) -> tuple[int, int]:
+    """``(added, missed)``: planes of ``poly``'s minimal grid with no plane of ``gt``'s (same axis)
+    within ``tol``, and planes of ``gt``'s with none of ``poly``'s (the tolerance of the exact match)."""
+    a, _ = compress([poly.xs, poly.ys, poly.zs], poly.occupancy)
+    b, _ = compress([gt.xs, gt.ys, gt.zs], gt.occupancy)
+
+    def unmatched(p, q):
+        return int((np.abs(p[:, None] - q[None, :]).min(axis=1) > tol).sum())
+
+    return sum(unmatched(a[i], b[i]) for i in range(3)), sum(unmatched(b[i], a[i]) for i in range(3))
 
 
 def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 8192, n_in: int | None = None,
@@ -245,6 +259,9 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
             out["exact_structure_rate_identity"] = float(np.mean([r["exact_identity"] for r in rows]))
             out["same_cells_rate_identity"] = float(np.mean([r["plane_offset_identity"] is not None for r in rows]))
         out["exact_by_thinnest_slab"] = by_thinnest_slab(rows)
+        # over the extracted clouds: planes with no ground-truth plane within 0.02, and the reverse
+        out["planes_added"] = int(sum(r["planes_added"] for r in rows if r["planes_added"] is not None))
+        out["planes_missed"] = int(sum(r["planes_missed"] for r in rows if r["planes_missed"] is not None))
         cats: dict = {}
         for r in rows:
             r["category"] = c = row_category(r)

@@ -26,3 +26,18 @@ def test_by_thinnest_slab_bins_and_rates():
     assert b["0.03-0.05"] == {"pairs": 2, "exact": 1.0}  # 0.03 falls in the upper bin
     assert b[">= 0.05"] == {"pairs": 2, "exact": 0.5}
     assert by_thinnest_slab(rows[:1])["0.03-0.05"] == {"pairs": 0, "exact": None}
+
+
+def test_plane_errors_count_planes_without_a_partner_within_the_tolerance():
+    from polycubenet.evaluate import plane_errors
+
+    occ = np.ones((2, 2, 1), bool)
+    occ[0, 1, 0] = False
+    gt = Polycube(np.array([0.0, 0.2, 0.5]), np.array([0.0, 0.1, 0.3]), np.array([0.0, 0.2]), occ)
+    assert plane_errors(gt, gt) == (0, 0)
+    near = Polycube(np.array([0.0, 0.21, 0.5]), np.array([0.0, 0.1, 0.3]), np.array([0.0, 0.2]), occ)
+    assert plane_errors(near, gt) == (0, 0)  # 0.01 off: the same plane
+    moved = Polycube(np.array([0.0, 0.25, 0.5]), np.array([0.0, 0.1, 0.3]), np.array([0.0, 0.2]), occ)
+    assert plane_errors(moved, gt) == (1, 1)  # the step moved: one plane added, one missed
+    box = Polycube(np.array([0.0, 0.5]), np.array([0.0, 0.3]), np.array([0.0, 0.2]), np.ones((1, 1, 1), bool))
+    assert plane_errors(box, gt) == (0, 2) and plane_errors(gt, box) == (2, 0)  # the step's two planes
