@@ -2,6 +2,7 @@
 
     python benchmarks/unseen_parts.py [--count 16] [--seed 7] [--family blocks|mixed] [--mesh] \\
         [--json benchmarks/results/unseen_parts.json]
+    python benchmarks/unseen_parts.py --count 16 --seed 61 --family mixed --make-only DIR   # the STEP files only
 
 Builds ``--count`` new CAD-like parts with gmsh's OpenCASCADE kernel, each from its own seed
 (none of them is in ``examples/parts``, and the seed decides everything: run with another
@@ -167,7 +168,14 @@ def main(argv=None) -> int:
     ap.add_argument("--draw-seed", type=int, default=0,
                     help="the model's noise seed for --mesh (0: as the pipeline draws; others: what further draws give)")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/unseen_parts.json"))
+    ap.add_argument("--make-only", metavar="DIR", help="only write the parts as STEP files into DIR and stop (no model): "
+                    "a folder for `polycubenet mesh` or benchmarks/bench_auto_cost.py --parts")
     args = ap.parse_args(argv)
+    if args.make_only:
+        Path(args.make_only).mkdir(parents=True, exist_ok=True)
+        for p, desc in make_parts(Path(args.make_only), args.count, args.seed, args.family):
+            print(f"{p}  {desc}")
+        return 0
     from polycubenet.inference import resolve_steps
 
     args.steps = int(resolve_steps(args.steps, "cpu", args.checkpoint)[1])
