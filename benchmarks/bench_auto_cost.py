@@ -55,22 +55,34 @@ def main(argv=None) -> int:
                      "rejected_polycube_s": m["last_run"].get("rejected_polycube_seconds"),
                      "rows": [{"name": r["name"], "status": r["status"], "provenance": r.get("provenance"),
                                "sj_min": (r.get("quality") or {}).get("sj_min"),
+                               "hausdorff": (r.get("quality") or {}).get("hausdorff"),
                                "rejected_s": round(sum(v for k, v in r["timings"].items() if k.startswith("rejected_")), 2),
                                "fallback": r.get("fallback")} for r in rows]}
         print(f"{mode:>9}: {wall:7.1f} s wall, {res[mode]['meshed']} meshed, {res[mode]['valid']} valid, "
               f"{res[mode]['rejected_polycube_s'] or 0:.1f} s of stage time on rejected polycubes", flush=True)
     ratio = res["auto"]["wall_s"] / res["classical"]["wall_s"]
     learned = sum(r["provenance"] == "learned" for r in res["auto"]["rows"])
+    from polycubenet import tol
+
+    def within(r):
+        return r.get("hausdorff") is not None and r["hausdorff"] <= tol.HAUSDORFF_REL_MAX
+
+    learned_within = sum(r["provenance"] == "learned" and within(r) for r in res["auto"]["rows"])
     print(f"\nauto / classical wall time: {ratio:.2f} (target <= 1.3); parts meshed through the learned polycube: "
-          f"{learned}/{len(res['auto']['rows'])}")
-    print(f"\n{'part':<20} {'auto polycube':<14} {'auto SJmin':>10} {'classical SJmin':>15} {'rejected s':>10}")
+          f"{learned}/{len(res['auto']['rows'])}, {learned_within} of them within the {100 * tol.HAUSDORFF_REL_MAX:g} % "
+          f"bar; within the bar: auto {sum(map(within, res['auto']['rows']))}, classical "
+          f"{sum(map(within, res['classical']['rows']))}")
+    print(f"\n{'part':<20} {'auto polycube':<14} {'auto SJmin':>10} {'classical SJmin':>15} {'auto off %':>10} "
+          f"{'classical off %':>15} {'rejected s':>10}")
     cl = {r["name"]: r for r in res["classical"]["rows"]}
     for r in res["auto"]["rows"]:
         c = cl.get(r["name"], {})
+        off = [100 * x["hausdorff"] if x.get("hausdorff") is not None else float("nan") for x in (r, c)]
         print(f"{r['name']:<20} {str(r['provenance']):<14} {r['sj_min'] or float('nan'):>10.3f} "
-              f"{c.get('sj_min') or float('nan'):>15.3f} {r['rejected_s']:>10.1f}")
+              f"{c.get('sj_min') or float('nan'):>15.3f} {off[0]:>10.2f} {off[1]:>15.2f} {r['rejected_s']:>10.1f}")
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps({"ratio": ratio, "learned": learned, "hexes": args.hexes,
+    Path(args.json).write_text(json.dumps({"ratio": ratio, "learned": learned, "learned_within_bar": learned_within,
+                                           "hexes": args.hexes,
                                            "cpus": os.cpu_count(), **res}, indent=1))
     return 0
 
