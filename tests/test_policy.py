@@ -240,8 +240,7 @@ def test_an_off_part_mesh_is_still_kept_over_an_invalid_one_and_faithful_meshes_
 
 
 def test_when_no_mesh_follows_the_part_the_closest_one_above_the_bar_is_kept():
-    # never-seen mixed_61_000 under auto: the learned draw's mesh 2.34 % off at min SJ 0.302, the classical
-    # one 1.33 % off at 0.301, every voxel polycube's farther or not valid: the classical mesh is kept
+    # no mesh within the bar: the closest one above it is kept, whatever its minimum SJ
     attempt, calls = _scripted({"learned": {"valid": True, "sj_min": 0.302, "hausdorff": 0.0234},
                                 "classical": {"valid": True, "sj_min": 0.301, "hausdorff": 0.0133},
                                 "voxel": {"valid": True, "sj_min": 0.31, "hausdorff": 0.0199},
