@@ -223,6 +223,13 @@ def faithful(meta: dict) -> bool:
     return d is None or d <= tol.HAUSDORFF_REL_MAX
 
 
+def under_bar(meta: dict, min_sj: float | None) -> bool:
+    """Whether a pulled-back mesh's minimum scaled Jacobian is under the quality bar ``min_sj`` (never
+    with no bar; always when the mesh has no measure)."""
+    sj = meta.get("sj_min")
+    return min_sj is not None and (sj is None or float(sj) < min_sj)
+
+
 def mesh_rank(meta: dict, min_sj: float | None = None) -> tuple:
     """Order of pulled-back meshes (``HexMesh.meta`` or a quality dict): a valid one first, then a
     faithful one (:func:`faithful`), then one not under the quality bar ``min_sj``; among faithful (or
@@ -234,7 +241,7 @@ def mesh_rank(meta: dict, min_sj: float | None = None) -> tuple:
     sj = meta.get("sj_min")
     sj = -np.inf if sj is None else float(sj)
     valid, true_to_part = bool(meta.get("valid")), faithful(meta)
-    above = min_sj is None or sj >= min_sj
+    above = not under_bar(meta, min_sj)
     if valid and not true_to_part:
         return (True, False, above, -distance_to_part(meta), sj)
     return (valid, true_to_part, above, sj, 0.0)
@@ -243,9 +250,7 @@ def mesh_rank(meta: dict, min_sj: float | None = None) -> tuple:
 def ends_chain(quality: dict, min_sj: float | None) -> bool:
     """Whether a pulled-back mesh (``HexMesh.meta`` or a quality dict) ends the chain: valid, faithful
     (:func:`faithful`) and not under the quality bar ``min_sj``."""
-    sj = quality.get("sj_min")
-    below = min_sj is not None and (sj is None or float(sj) < min_sj)
-    return bool(quality.get("valid")) and faithful(quality) and not below
+    return bool(quality.get("valid")) and faithful(quality) and not under_bar(quality, min_sj)
 
 
 def unfaithful_reason(label: str, meta: dict) -> str:
@@ -389,7 +394,7 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
         if not chosen.quality.get("valid"):
             why = invalid_mesh_reason(label, chosen.quality)
         elif not faithful(chosen.quality) and (faithful(best.quality)
-                                               or mesh_rank(chosen.quality, min_sj)[2] == mesh_rank(best.quality, min_sj)[2]):
+                                               or under_bar(chosen.quality, min_sj) == under_bar(best.quality, min_sj)):
             why = f"the {label} polycube's hex mesh is valid but does not follow the part as closely as an earlier one"
         elif not faithful(chosen.quality):
             why = (f"the {label} polycube's hex mesh is valid but {100 * distance_to_part(chosen.quality):.2f} % of "
