@@ -49,6 +49,7 @@ class TrainConfig:
     steps: int = 20000
     batch: int = 16  # global batch (split over ranks)
     points: int = 512  # training resolution of condition and target (paper: 4096)
+    cond_points: int = 0  # > 0: the condition's own resolution (the part is sampled at 2048-4096 at inference)
     lr: float = 1e-4
     weight_decay: float = 0.01
     warmup: int = 500
@@ -73,6 +74,7 @@ class TrainConfig:
     max_genus: int = -1  # curriculum: train only on pairs of genus <= this (-1: all)
     reload_every: int = 0  # re-read the shard folder every this many steps (0: never), for shards still being written
     fit_steps: bool = False  # with a time limit: re-fit `steps` to the measured pace, so the cosine ends with the time
+    fresh_lr_mult: float = 1.0  # the learning rate of parameters an --init file does not have (a new module), times this
 
 
 def _share(parts: list[dict], cat: dict) -> None:
@@ -169,7 +171,8 @@ class PairData:
         augmented alike."""
         B = len(idx)
         N, M = self.cond.shape[1], self.target_points.shape[1]
-        ci, ti = _subsample(rng, B, N, points), _subsample(rng, B, M, points)
+        nc = cfg.cond_points if cfg is not None and cfg.cond_points else points
+        ci, ti = _subsample(rng, B, N, nc), _subsample(rng, B, M, points)
         g = np.take_along_axis(self.cond[idx], ci[..., None], axis=1).astype(np.float64)
         p = np.take_along_axis(self.target_points[idx], ti[..., None], axis=1).astype(np.float64)
         nrm = np.take_along_axis(self.target_normals[idx], ti[..., None], axis=1).astype(np.float32)
@@ -222,7 +225,8 @@ class DevicePairs:
         def pick(arr: torch.Tensor, sub: torch.Tensor) -> torch.Tensor:
             return torch.gather(arr[i], 1, sub[..., None].expand(-1, -1, arr.shape[-1]))
 
-        ci, ti = self._subsample(B, N, points, gen), self._subsample(B, M, points, gen)
+        nc = cfg.cond_points if cfg is not None and cfg.cond_points else points
+        ci, ti = self._subsample(B, N, nc, gen), self._subsample(B, M, points, gen)
         g, p = pick(self.cond, ci), pick(self.target_points, ti)
         nrm, a = pick(self.target_normals, ti), pick(self.target_on_shape, ti)
         an = pick(self.anchor_normals, ti) if self.anchor_normals is not None else None
@@ -280,6 +284,17 @@ def ema_update(ema: torch.nn.Module, model: torch.nn.Module, decay: float) -> No
     pe = list(ema.parameters())
     torch._foreach_mul_(pe, decay)
     torch._foreach_add_(pe, [p.detach() for p in model.parameters()], alpha=1 - decay)
+
+
+def _param_groups(model: torch.nn.Module, fresh: set[str], mult: float) -> list[dict]:
+    """AdamW groups: the parameters named in ``fresh`` (not taken from an ``--init`` file) with
+    learning rate times ``mult``, the rest times 1 (``lr_mult`` of each group)."""
+    named = list(model.named_parameters())
+    new = [p for n, p in named if n in fresh]
+    groups = [{"params": [p for n, p in named if n not in fresh], "lr_mult": 1.0}]
+    if new:
+        groups.append({"params": new, "lr_mult": float(mult)})
+    return groups
 
 
 def _widen_anchor_embed(src: dict, own: dict, mcfg: ModelConfig) -> dict:
@@ -379,6 +394,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
     cpu_before = float(prior_cpu_hours) * 3600.0  # CPU-seconds of training behind this run's weights
     gpu_before = 0.0  # GPU-seconds likewise (wall time of runs on an accelerator, which add no CPU-hours)
     lineage: list = []
+    fresh: list[str] = []  # parameters not taken from --init (their own learning rate: cfg.fresh_lr_mult)
     ckpt = run / "last.pt"
     if init is not None and not (resume and ckpt.exists()):
         src = torch.load(init, map_location="cpu", weights_only=False)
@@ -403,10 +419,13 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
     ema = copy.deepcopy(model).eval()
     for p in ema.parameters():
         p.requires_grad_(False)
-    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     step = 0
-    if resume and ckpt.exists():
-        s = torch.load(ckpt, map_location="cpu", weights_only=False)
+    s = torch.load(ckpt, map_location="cpu", weights_only=False) if resume and ckpt.exists() else None
+    if s is not None:
+        fresh = list(s.get("fresh", []))
+    opt = torch.optim.AdamW(_param_groups(model, set(fresh), cfg.fresh_lr_mult), lr=cfg.lr,
+                            weight_decay=cfg.weight_decay)
+    if s is not None:
         saved = ModelConfig.from_dict(s["model_config"])
         if dataclasses.replace(saved, chunk=mcfg.chunk) != mcfg:  # chunk is an inference setting
             raise ValueError(f"{ckpt} was trained with another model config; use a new --run folder")
@@ -462,7 +481,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
         idx = rng.integers(0, len(data), size=per_rank)
         x0, cond, anchor = draw_batch(data, on_device, idx, rng, cfg, mcfg, dev)
         for group in opt.param_groups:
-            group["lr"] = lr_at(step, cfg)
+            group["lr"] = lr_at(step, cfg) * group.get("lr_mult", 1.0)
         gen = torch.Generator(device=dev).manual_seed(int(rng.integers(2**62)))
         model.train()
         loss, stats = diffusion.training_loss(net, x0, cond, loss=cfg.loss, generator=gen, autocast=autocast,
@@ -514,7 +533,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
                 "train_config": dataclasses.asdict(cfg), "data": str(data.directory), "pairs": len(data),
                 "model": model.state_dict(), "ema": ema.state_dict(), "optimizer": opt.state_dict(),
                 "step": step, "metrics": metrics, "world_size": world, "device": str(dev),
-                "cpu_hours": cpu_hours, "gpu_hours": gpu_hours, "lineage": lineage,
+                "cpu_hours": cpu_hours, "gpu_hours": gpu_hours, "lineage": lineage, "fresh": fresh,
             })
         if out_of_time:
             break
@@ -528,15 +547,15 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
 
 def recipe_flags(checkpoint: str | Path) -> list[str]:
     """The ``train`` flags of the recipe a checkpoint was trained with (preset, diffusion, points,
-    batch, anchor gain, t bias), so a run continues it (``scripts/train_session.sh``,
+    condition points, batch, anchor gain, t bias), so a run continues it (``scripts/train_session.sh``,
     ``scripts/device_train.sh``; a later ``--batch`` on the command line wins)."""
     s = torch.load(checkpoint, map_location="cpu", weights_only=False)
     d, tc = s.get("diffusion") or {}, s.get("train_config") or {}
     return ["--preset", tc.get("preset", "cpu"),
             "--prediction", d.get("prediction", "eps"), "--schedule", d.get("schedule", "cosine"),
             "--pairing", d.get("pairing", "random"), "--min-snr", str(d.get("min_snr") or 0),
-            "--points", str(tc.get("points", 512)), "--batch", str(tc.get("batch", 12)),
-            "--anchor-gain", str((s.get("model_config") or {}).get("anchor_gain", 0.0)),
+            "--points", str(tc.get("points", 512)), "--cond-points", str(tc.get("cond_points", 0)),
+            "--batch", str(tc.get("batch", 12)), "--anchor-gain", str((s.get("model_config") or {}).get("anchor_gain", 0.0)),
             "--t-bias", str(tc.get("t_bias", 1.0))]
 
 

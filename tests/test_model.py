@@ -103,3 +103,30 @@ def test_parameter_count_command(capsys):
     out = capsys.readouterr().out
     n_tiny = sum(p.numel() for p in PolycubeNet(preset("tiny")).parameters())
     assert f"{n_tiny:,}" in out and "cpu" in out
+
+
+def test_local_context_reads_the_nearest_condition_points_only():
+    """Each anchor's feature changes when one of its k nearest condition points moves, not when a far
+    one does; a condition cloud over ``ref`` points is read at an even stride."""
+    from polycubenet.model.network import LocalContext
+
+    torch.manual_seed(0)
+    ctx = LocalContext(k=4, dim=16, anchor_dim=6, radius=0.1, ref=64)
+    for p in ctx.out.parameters():  # it starts at zero (a no-op); give it an output to look at
+        torch.nn.init.normal_(p)
+    anchor = torch.tensor([[[0.0, 0.0, 0.0, 0.0, 0.0, 1.0]]])
+    near = 0.05 * torch.randn(1, 4, 3)
+    far = 3.0 + torch.rand(1, 20, 3)
+    cond = torch.cat([near, far], dim=1)
+    base = ctx(anchor, cond)
+    moved_far = cond.clone()
+    moved_far[0, 10] += 0.5
+    torch.testing.assert_close(ctx(anchor, moved_far), base)
+    moved_near = cond.clone()
+    moved_near[0, 1] += torch.tensor([0.0, 0.0, 0.03])
+    assert (ctx(anchor, moved_near) - base).abs().max() > 1e-4
+    big = torch.randn(1, 128, 3)
+    torch.testing.assert_close(ctx(anchor, big), ctx(anchor, big[:, ::2]))
+    # chunked over anchors = at once
+    many = torch.cat([torch.randn(2, 50, 3), torch.nn.functional.normalize(torch.randn(2, 50, 3), dim=-1)], -1)
+    torch.testing.assert_close(ctx(many, big.expand(2, -1, -1), chunk=7), ctx(many, big.expand(2, -1, -1)))

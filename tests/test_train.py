@@ -340,3 +340,48 @@ def test_device_batches_draw_what_the_numpy_builder_draws(shards):
     ref, ref_cond = data.batch(np.array([3]), 128, np.random.default_rng(0), cfg0)
     for a, b in ((x0, ref), (cond, ref_cond)):
         np.testing.assert_allclose(np.sort(a[0].numpy(), axis=0), np.sort(b[0].numpy(), axis=0), atol=1e-6)
+
+
+def test_a_local_context_model_starts_as_the_one_without_and_its_new_module_has_its_own_rate(shards, tmp_path):
+    """``--init`` into a preset with a local context (``cpu-anchored-normals-local`` over
+    ``cpu-anchored-normals``): its output projection starts at zero, so the model computes the old
+    function; ``fresh_lr_mult`` 0 then keeps the new module where it started while the rest trains,
+    and a positive one moves it (the multiplier survives a resume)."""
+    from polycubenet.model import preset as model_preset
+
+    old_cfg = dataclasses.replace(model_preset("tiny"), anchored=True, anchor_normals=True)
+    train(shards, tmp_path / "old", dataclasses.replace(CFG, steps=3), progress=False, model_config=old_cfg)
+    old = load_checkpoint(tmp_path / "old" / "last.pt").model.eval()
+    new_cfg = dataclasses.replace(old_cfg, local_k=4)
+    g = torch.Generator().manual_seed(0)
+    x, cond = torch.randn(2, 20, 6, generator=g), torch.randn(2, 30, 3, generator=g)
+    anchor = torch.cat([torch.randn(2, 20, 3, generator=g),
+                        torch.nn.functional.normalize(torch.randn(2, 20, 3, generator=g), dim=-1)], -1)
+    t = torch.tensor([300, 900])
+    frozen = dataclasses.replace(CFG, steps=4, warmup=0, lr=1e-2, fresh_lr_mult=0.0)
+    train(shards, tmp_path / "frozen", dataclasses.replace(frozen, steps=2), progress=False, model_config=new_cfg,
+          init=tmp_path / "old" / "last.pt")
+    train(shards, tmp_path / "frozen", frozen, progress=False, model_config=new_cfg)  # resumed to step 4
+    end = load_checkpoint(tmp_path / "frozen" / "last.pt").model.eval()
+    assert end.denoiser.local.out.weight.abs().sum() == 0  # the multiplier 0 held across the resume
+    assert not torch.equal(end.denoiser.out.weight, old.denoiser.out.weight)  # while the rest trained
+    train(shards, tmp_path / "zero", dataclasses.replace(CFG, steps=1, lr=0.0), progress=False, model_config=new_cfg,
+          init=tmp_path / "old" / "last.pt")
+    same = load_checkpoint(tmp_path / "zero" / "last.pt").model.eval()
+    with torch.no_grad():
+        torch.testing.assert_close(same(x, t, cond, anchor=anchor), old(x, t, cond, anchor=anchor))
+    train(shards, tmp_path / "moves", dataclasses.replace(frozen, fresh_lr_mult=1.0), progress=False,
+          model_config=new_cfg, init=tmp_path / "old" / "last.pt")
+    moved = load_checkpoint(tmp_path / "moves" / "last.pt").model
+    assert moved.denoiser.local.out.weight.abs().sum() > 0
+
+
+def test_the_condition_has_its_own_resolution(shards):
+    """``cond_points``: the condition is drawn at its own resolution, the target at ``points``."""
+    data = PairData(shards)
+    cfg = dataclasses.replace(CFG, points=32, cond_points=96)
+    x0, cond, anchor = data.batch(np.arange(3), 32, np.random.default_rng(0), cfg, anchors=6)
+    assert x0.shape == (3, 32, 6) and anchor.shape == (3, 32, 6) and cond.shape == (3, 96, 3)
+    dev = DevicePairs(data, torch.device("cpu"), anchors=6)
+    x0, cond, anchor = dev.batch(np.arange(3), 32, torch.Generator().manual_seed(0), cfg)
+    assert x0.shape == (3, 32, 6) and cond.shape == (3, 96, 3)

@@ -179,6 +179,49 @@ class PointEmbed(nn.Module):
         return self.proj(feats)
 
 
+class LocalContext(nn.Module):
+    """Each anchor's ``k`` nearest condition points, as features added to its point stream.
+
+    Per neighbour: its offset from the anchor and its distance, in units of ``radius`` (network
+    units), beside the anchor's own channels after its position (its normal); a shared MLP, a max
+    over the neighbours and an output projection that starts at zero, so that a model given this
+    context starts as the same function as the one without it (``train --init``).  The latents
+    carry the part as a whole; this carries the few percent of the diagonal around a point, where a
+    thin slab's two faces are told apart.  Condition clouds larger than ``ref`` points are read at an
+    even stride (neighbourhoods then span what they spanned in training)."""
+
+    def __init__(self, k: int, dim: int, anchor_dim: int, radius: float, ref: int):
+        super().__init__()
+        self.k, self.radius, self.ref = k, radius, ref
+        # narrow before the max (the per-neighbour tensors are k times the points'): 32 wide at dim 96
+        hidden = max(8, dim // 3)
+        self.mlp = nn.Sequential(nn.Linear(4 + anchor_dim - 3, hidden), nn.GELU(), nn.Linear(hidden, hidden))
+        self.out = nn.Linear(hidden, dim)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    def forward(self, anchor: torch.Tensor, cond: torch.Tensor, chunk: int | None = None) -> torch.Tensor:
+        c = cond[..., :3]
+        B, m, _ = c.shape
+        if m > self.ref:
+            c = c[:, :: -(-m // self.ref)]
+            m = c.shape[1]
+        k = min(self.k, m)
+        step = min(chunk or anchor.shape[1], 1024)
+        flat = c.reshape(B * m, 3)
+        base = (torch.arange(B, device=c.device) * m)[:, None, None]
+        outs = []
+        for s in range(0, anchor.shape[1], step):
+            a = anchor[:, s : s + step]
+            with torch.no_grad():
+                dist, idx = torch.cdist(a[..., :3].float(), c.float()).topk(k, dim=-1, largest=False)
+                off = (flat[(idx + base).reshape(-1)].view(B, a.shape[1], k, 3) - a[..., None, :3]) / self.radius
+                feats = torch.cat([off, dist[..., None] / self.radius,
+                                   a[..., None, 3:].expand(-1, -1, k, -1)], dim=-1).to(a.dtype)
+            outs.append(self.out(self.mlp(feats).amax(dim=2)))
+        return torch.cat(outs, dim=1)
+
+
 def timestep_embedding(t: torch.Tensor, dim: int, max_period: float = 10000.0) -> torch.Tensor:
     """Sinusoidal embedding of integer timesteps ``t`` (B,) -> (B, dim)."""
     half = dim // 2
@@ -212,9 +255,13 @@ class ConditionEncoder(nn.Module):
 class Denoiser(nn.Module):
     """eps_theta(x_t, z_c, t): TS blocks over x_t with latents ``[z_c, z_init, embed(t)]``."""
 
-    def __init__(self, cfg: StreamConfig, point_dim: int, cond_width: int, fourier: int, anchor_dim: int = 0):
+    def __init__(self, cfg: StreamConfig, point_dim: int, cond_width: int, fourier: int, anchor_dim: int = 0,
+                 local: LocalContext | None = None):
         super().__init__()
         d = cfg.dim
+        if local is not None and anchor_dim == 0:
+            raise ValueError("a local context needs an anchored denoiser")
+        self.local = local
         self.anchored = anchor_dim > 0
         self.anchor_dim = anchor_dim
         # anchored: the input is [anchor (xyz, or xyz + part normal), x_t] and the Fourier features
@@ -232,6 +279,11 @@ class Denoiser(nn.Module):
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, z_c: torch.Tensor, chunk: int | None = None,
                 anchor: torch.Tensor | None = None) -> torch.Tensor:
         B = x_t.shape[0]
+        cond = None
+        if isinstance(z_c, tuple):  # (tokens, condition points) from a model with a local context
+            z_c, cond = z_c
+        if (self.local is not None) != (cond is not None):
+            raise ValueError("a local context needs the condition points with its tokens (and only it takes them)")
         if self.anchored != (anchor is not None):
             raise ValueError("an anchored denoiser needs anchor points (and only it takes them)")
         if anchor is not None and anchor.shape[-1] != self.anchor_dim:
@@ -243,6 +295,8 @@ class Denoiser(nn.Module):
         z = torch.cat([self.cond_proj(z_c), self.latents.unsqueeze(0).expand(B, -1, -1), temb[:, None]], dim=1)
         inp = x_t if anchor is None else torch.cat([anchor.to(x_t.dtype), x_t], dim=-1)
         x = _embed_chunked(self.embed, inp, chunk, add=temb[:, None])
+        if self.local is not None:
+            x = x + self.local(anchor, cond, chunk)
         for block in self.blocks:
             x, z = block(x, z, chunk=chunk)
         if chunk is not None and x.shape[1] > chunk:
@@ -276,11 +330,19 @@ class PolycubeNet(nn.Module):
         super().__init__()
         self.config = config
         self.encoder = ConditionEncoder(config.encoder, config.cond_dim, config.fourier)
+        local = None
+        if config.local_k:
+            # offsets in units of 5 % of the diagonal (network units: the diagonal is xyz_scale)
+            local = LocalContext(config.local_k, config.denoiser.dim, config.anchor_dim, 0.05 * config.xyz_scale,
+                                 config.local_ref)
         self.denoiser = Denoiser(config.denoiser, config.point_dim, config.encoder.dim, config.fourier,
-                                 anchor_dim=config.anchor_dim)
+                                 anchor_dim=config.anchor_dim, local=local)
 
-    def encode(self, cond: torch.Tensor, chunk: int | None = None) -> torch.Tensor:
-        return self.encoder(cond, chunk=chunk)
+    def encode(self, cond: torch.Tensor, chunk: int | None = None) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        """The condition tokens z_c; with a local context (``config.local_k``) ``(z_c, cond)``, which
+        :meth:`denoise` takes as it is."""
+        z = self.encoder(cond, chunk=chunk)
+        return (z, cond) if self.config.local_k else z
 
     def denoise(self, x_t: torch.Tensor, t: torch.Tensor, z_c: torch.Tensor, chunk: int | None = None,
                 anchor: torch.Tensor | None = None) -> torch.Tensor:
