@@ -77,6 +77,11 @@ class TrainConfig:
     fresh_lr_mult: float = 1.0  # the learning rate of parameters an --init file does not have (a new module), times this
 
 
+def _cond_points(cfg: "TrainConfig | None", points: int) -> int:
+    """The condition's resolution of a draw: ``cfg.cond_points`` when set, else the targets' ``points``."""
+    return cfg.cond_points if cfg is not None and cfg.cond_points else points
+
+
 def _share(parts: list[dict], cat: dict) -> None:
     """Point each cached shard's arrays into the concatenated ones (``cat``, shards in order), so the
     pairs are held once: a copy per shard beside the concatenation doubled the memory (28 672 pairs:
@@ -171,8 +176,7 @@ class PairData:
         augmented alike."""
         B = len(idx)
         N, M = self.cond.shape[1], self.target_points.shape[1]
-        nc = cfg.cond_points if cfg is not None and cfg.cond_points else points
-        ci, ti = _subsample(rng, B, N, nc), _subsample(rng, B, M, points)
+        ci, ti = _subsample(rng, B, N, _cond_points(cfg, points)), _subsample(rng, B, M, points)
         g = np.take_along_axis(self.cond[idx], ci[..., None], axis=1).astype(np.float64)
         p = np.take_along_axis(self.target_points[idx], ti[..., None], axis=1).astype(np.float64)
         nrm = np.take_along_axis(self.target_normals[idx], ti[..., None], axis=1).astype(np.float32)
@@ -225,8 +229,7 @@ class DevicePairs:
         def pick(arr: torch.Tensor, sub: torch.Tensor) -> torch.Tensor:
             return torch.gather(arr[i], 1, sub[..., None].expand(-1, -1, arr.shape[-1]))
 
-        nc = cfg.cond_points if cfg is not None and cfg.cond_points else points
-        ci, ti = self._subsample(B, N, nc, gen), self._subsample(B, M, points, gen)
+        ci, ti = self._subsample(B, N, _cond_points(cfg, points), gen), self._subsample(B, M, points, gen)
         g, p = pick(self.cond, ci), pick(self.target_points, ti)
         nrm, a = pick(self.target_normals, ti), pick(self.target_on_shape, ti)
         an = pick(self.anchor_normals, ti) if self.anchor_normals is not None else None

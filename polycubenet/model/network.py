@@ -276,8 +276,8 @@ class Denoiser(nn.Module):
         nn.init.zeros_(self.out.weight)
         nn.init.zeros_(self.out.bias)
 
-    def forward(self, x_t: torch.Tensor, t: torch.Tensor, z_c: torch.Tensor, chunk: int | None = None,
-                anchor: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, x_t: torch.Tensor, t: torch.Tensor, z_c: torch.Tensor | tuple[torch.Tensor, torch.Tensor],
+                chunk: int | None = None, anchor: torch.Tensor | None = None) -> torch.Tensor:
         B = x_t.shape[0]
         cond = None
         if isinstance(z_c, tuple):  # (tokens, condition points) from a model with a local context
