@@ -450,7 +450,9 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
     heldout = None
     if eval_dir is not None and rank == 0:
         ev = PairData(eval_dir, limit=cfg.eval_pairs)
-        heldout = _to_net(ev.batch(np.arange(len(ev)), cfg.points, np.random.default_rng(12345),
+        # no augmentation, the condition at the run's own resolution (cond_points)
+        plain = dataclasses.replace(cfg, scale_aug=0.0, jitter=0.0)
+        heldout = _to_net(ev.batch(np.arange(len(ev)), cfg.points, np.random.default_rng(12345), plain,
                                    anchors=mcfg.anchor_dim), mcfg, dev)
     net = model
     if ddp:
