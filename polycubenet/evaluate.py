@@ -160,7 +160,7 @@ def plane_errors(poly, gt, tol: float = 0.02) -> tuple[int, int]:
 
 def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 8192, n_in: int | None = None,
              steps: int | None = 64, seed: int = 0, structure: bool = True, batch: int = 8, device: str | None = None,
-             progress: bool = True, keep_clouds: int = 0, identity: bool = False) -> dict:
+             progress: bool = True, keep_clouds: int = 0, identity: bool = False, recycles: int | None = None) -> dict:
     """Metrics of ``checkpoint`` on the first ``count`` pairs of the held-out shards ``data``.
 
     ``keep_clouds`` > 0 also returns ``clouds``: (condition, generated cloud, ground-truth
@@ -195,7 +195,8 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
                 if cfg.anchor_normals:
                     cp = np.hstack([cp, np.asarray(s["cond_normals"][k], np.float32)])
                 anchors.append(cp[np.random.default_rng(k).permutation(len(cp))[:n_gen]])
-        clouds = generate(conds, n_gen, model=loaded, steps=steps, seed=seed + b, device=device, anchors=anchors)
+        clouds = generate(conds, n_gen, model=loaded, steps=steps, seed=seed + b, device=device, anchors=anchors,
+                          recycles=recycles)
         t_gen = (time.perf_counter() - tg) / len(chunk)
         for i, ((s, k), cloud, c) in enumerate(zip(chunk, clouds, conds)):
             truth = np.asarray(s["target_points"][k], float)
@@ -235,6 +236,7 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
         "n_out": n_out,
         "n_in": n_in,
         "steps": steps,
+        "recycles": recycles,
         "chamfer_mean": float(ch.mean()),
         "chamfer_median": float(np.median(ch)),
         "chamfer_p90": float(np.quantile(ch, 0.9)),
@@ -286,6 +288,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--n-in", type=int, help="subsample the condition to this many points")
     ap.add_argument("--steps", type=int, default=64, help="DDIM steps (0: stride 4)")
     ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--recycles", type=int, help="a recycling model's further evaluations per step (default: 1 for one)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-structure", action="store_true")
     ap.add_argument("--identity", action="store_true",
@@ -296,7 +299,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     res = evaluate(args.checkpoint, args.data, args.count, n_out=args.n_out, n_in=args.n_in,
                    steps=args.steps or None, seed=args.seed, structure=not args.no_structure, batch=args.batch,
-                   device=args.device, identity=args.identity)
+                   device=args.device, identity=args.identity, recycles=args.recycles)
     summary = {k: v for k, v in res.items() if k != "rows"}
     print(json.dumps(summary, indent=1))
     if args.json:

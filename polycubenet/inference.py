@@ -127,7 +127,7 @@ def model_anchors(loaded: "Loaded", V: np.ndarray, F: np.ndarray, n: int, seed: 
 
 def _sample_batch(loaded: Loaded, conds: list[np.ndarray], n_out: int, seeds: list[int], *, steps, stride, eta,
                   device: str, chunk: int | None, progress: Callable | None,
-                  anchors: list[np.ndarray] | None = None) -> list[np.ndarray]:
+                  anchors: list[np.ndarray] | None = None, recycles: int | None = None) -> list[np.ndarray]:
     model, diffusion = loaded.model, loaded.diffusion
     cfg = model.config
     scale = cfg.xyz_scale
@@ -140,7 +140,8 @@ def _sample_batch(loaded: Loaded, conds: list[np.ndarray], n_out: int, seeds: li
         _, anchor = anchored_to_network(torch.as_tensor(np.stack(anchors), dtype=torch.float32, device=dev), None, None,
                                         scale, cfg.anchor_gain)
     x = diffusion.sample(model, cond, n_out, steps=steps, stride=stride, eta=eta, generator=gens,
-                         chunk=chunk or min(cfg.chunk, MAX_CHUNK), autocast=autocast, progress=progress, anchor=anchor)
+                         chunk=chunk or min(cfg.chunk, MAX_CHUNK), autocast=autocast, progress=progress, anchor=anchor,
+                         recycles=(1 if cfg.recycle else 0) if recycles is None else recycles)
     if cfg.anchored:
         out = anchored_from_network(x, anchor, scale, cfg.anchor_gain)
     else:
@@ -162,6 +163,7 @@ def generate(
     chunk: int | None = None,
     progress: Callable[[int, int], None] | None = None,
     anchors: Sequence[np.ndarray] | None = None,
+    recycles: int | None = None,
 ) -> list[np.ndarray]:
     """Polycube clouds for ``conditions`` (each ``(N_i, 3)``, canonical frame).
 
@@ -181,6 +183,8 @@ def generate(
     seed : request ``i`` uses generator seed ``request_seed(seed, conditions[i])``
     point_budget : points (condition + output) per batch
     progress : called with ``(batches done, batches)``
+    recycles : a recycling model's (``ModelConfig.recycle``) further evaluations per step, each given
+        the last one's clean estimate (default: 1 for such a model, else 0)
 
     Returns
     -------
@@ -217,7 +221,7 @@ def generate(
     for b, idx in enumerate(batches):
         clouds = _sample_batch(loaded, [conds[i] for i in idx], outs[idx[0]], [request_seed(seed, conds[i]) for i in idx],
                                steps=steps, stride=stride, eta=eta, device=device, chunk=chunk, progress=None,
-                               anchors=None if anch is None else [anch[i] for i in idx])
+                               anchors=None if anch is None else [anch[i] for i in idx], recycles=recycles)
         for i, cloud in zip(idx, clouds):
             results[i] = cloud
         if progress is not None:

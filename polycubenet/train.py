@@ -71,6 +71,8 @@ class TrainConfig:
     pairing: str = "random"  # random | ot (noise matched to the target points by assignment)
     anchor_gain: float = 0.0  # > 0: the anchored model's displacement gain (ModelConfig.anchor_gain; 0: the preset's)
     t_bias: float = 1.0  # > 1: timesteps drawn towards the noisy end (Diffusion.training_loss)
+    t_uniform: float = 0.0  # this fraction of pairs draws its timestep uniformly instead (Diffusion.training_loss)
+    recycle: float = 0.0  # a recycling model (ModelConfig.recycle): the share of batches trained on a second evaluation
     max_genus: int = -1  # curriculum: train only on pairs of genus <= this (-1: all)
     reload_every: int = 0  # re-read the shard folder every this many steps (0: never), for shards still being written
     fit_steps: bool = False  # with a time limit: re-fit `steps` to the measured pace, so the cosine ends with the time
@@ -372,6 +374,9 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
     (``cpu_hours`` in its metadata, plus ``prior_cpu_hours`` for training it does not record)
     carry over into this run's.
     """
+    if cfg.recycle > 0 and not (model_config or preset(cfg.preset)).recycle:
+        raise ValueError(f"--recycle {cfg.recycle} needs a model that takes its previous estimate: preset "
+                         f"{cfg.preset!r} has ModelConfig.recycle False (e.g. --preset cpu-anchored-normals-recycle)")
     rank, world, local = _dist_env()
     if device is None:
         device = f"cuda:{local}" if torch.cuda.is_available() else "cpu"
@@ -490,7 +495,8 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
         gen = torch.Generator(device=dev).manual_seed(int(rng.integers(2**62)))
         model.train()
         loss, stats = diffusion.training_loss(net, x0, cond, loss=cfg.loss, generator=gen, autocast=autocast,
-                                              anchor=anchor, t_bias=cfg.t_bias)
+                                              anchor=anchor, t_bias=cfg.t_bias,
+                                              t_uniform=cfg.t_uniform, recycle=cfg.recycle)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         gnorm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.clip))
@@ -552,7 +558,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
 
 def recipe_flags(checkpoint: str | Path) -> list[str]:
     """The ``train`` flags of the recipe a checkpoint was trained with (preset, diffusion, points,
-    condition points, batch, anchor gain, t bias), so a run continues it (``scripts/train_session.sh``,
+    condition points, batch, anchor gain, t bias and its uniform share, recycling share), so a run continues it (``scripts/train_session.sh``,
     ``scripts/device_train.sh``; a later ``--batch`` on the command line wins)."""
     s = torch.load(checkpoint, map_location="cpu", weights_only=False)
     d, tc = s.get("diffusion") or {}, s.get("train_config") or {}
@@ -561,7 +567,8 @@ def recipe_flags(checkpoint: str | Path) -> list[str]:
             "--pairing", d.get("pairing", "random"), "--min-snr", str(d.get("min_snr") or 0),
             "--points", str(tc.get("points", 512)), "--cond-points", str(tc.get("cond_points", 0)),
             "--batch", str(tc.get("batch", 12)), "--anchor-gain", str((s.get("model_config") or {}).get("anchor_gain", 0.0)),
-            "--t-bias", str(tc.get("t_bias", 1.0))]
+            "--t-bias", str(tc.get("t_bias", 1.0)), "--t-uniform", str(tc.get("t_uniform", 0.0)),
+            "--recycle", str(tc.get("recycle", 0.0))]
 
 
 def main(argv: list[str] | None = None) -> int:

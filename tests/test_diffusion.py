@@ -229,3 +229,71 @@ def test_t_bias_draws_timesteps_towards_the_noisy_end():
         assert torch.isfinite(loss) and t.min() >= 0 and t.max() <= d.T - 1
         late = float((t >= 0.75 * d.T).double().mean())
         assert abs(late - (0.25 if bias == 1.0 else 0.25 ** (1 / 3))) < 0.03, (bias, late)
+
+
+def test_t_uniform_gives_a_share_of_the_batch_uniform_timesteps():
+    """With the one-step recipe's ``t_bias`` 1000 every draw sits at the noisy end; ``t_uniform`` 0.5 gives
+    about half the pairs a uniform timestep instead (a quarter then fall in the low-noise half, where a
+    refining DDIM step evaluates the network), and the rest keep the biased draw."""
+    d = Diffusion(prediction="v", schedule="cosine_ztsnr")
+    seen = {}
+
+    def model(x_t, t, cond):
+        seen["t"] = t.clone()
+        return torch.zeros_like(x_t)
+
+    x0, cond = torch.randn(4000, 2, 6), torch.randn(4000, 2, 3)
+    for share in (0.0, 0.5):
+        d.training_loss(model, x0, cond, generator=torch.Generator().manual_seed(1), t_bias=1000.0, t_uniform=share)
+        t = seen["t"].double()
+        assert t.min() >= 0 and t.max() <= d.T - 1
+        low = float((t < 0.5 * d.T).double().mean())
+        end = float((t >= d.T - 2).double().mean())
+        if share == 0.0:
+            assert low < 0.002 and end > 0.99, (low, end)
+        else:
+            assert abs(low - 0.25) < 0.03 and abs(end - 0.5) < 0.03, (low, end)
+
+
+class _Recording(torch.nn.Module):
+    """A stand-in recycling model: records what each evaluation got and answers a fixed v."""
+
+    def __init__(self):
+        super().__init__()
+        self.config = type("C", (), {"recycle": True, "point_dim": 6})()
+        self.calls = []
+
+    def encode(self, cond, chunk=None):
+        return cond
+
+    def denoise(self, x_t, t, z_c, chunk=None, x0_prev=None):
+        return self(x_t, t, z_c, x0_prev=x0_prev)
+
+    def forward(self, x_t, t, cond, x0_prev=None):
+        self.calls.append(None if x0_prev is None else x0_prev.clone())
+        return 0.3 * torch.ones_like(x_t) + (0.0 if x0_prev is None else 0.5 * x0_prev)
+
+
+def test_recycle_trains_the_second_evaluation_on_the_first_ones_clean_estimate():
+    """``recycle`` 1: the loss is that of a second evaluation given the first's clean estimate (clipped to the
+    sampling step's range); ``recycle`` 0: one evaluation, no estimate; the sampler gives a recycling model
+    its last estimate at every evaluation, ``1 + recycles`` evaluations per step."""
+    d = Diffusion(prediction="v", schedule="cosine_ztsnr")
+    x0, cond = 0.2 * torch.randn(3, 8, 6), torch.randn(3, 5, 3)
+    m = _Recording()
+    _, stats = d.training_loss(m, x0, cond, generator=torch.Generator().manual_seed(0), t_bias=1000.0, recycle=0.0)
+    assert len(m.calls) == 1 and m.calls[0] is None and not stats["recycled"]
+    m.calls.clear()
+    g = torch.Generator().manual_seed(0)
+    _, stats = d.training_loss(m, x0, cond, generator=g, t_bias=1000.0, recycle=1.0)
+    assert stats["recycled"] and len(m.calls) == 2 and m.calls[0] is None
+    # at t = T - 1 (zero terminal SNR) the clean estimate of a v answer is -v: here -0.3 everywhere
+    torch.testing.assert_close(m.calls[1], torch.full_like(x0, -0.3), atol=1e-3, rtol=0)
+    m.calls.clear()
+    d.sample(m, cond, 8, steps=1, generator=torch.Generator().manual_seed(0), recycles=2)
+    assert len(m.calls) == 3 and m.calls[0] is None
+    torch.testing.assert_close(m.calls[1], torch.full_like(x0, -0.3), atol=1e-3, rtol=0)
+    torch.testing.assert_close(m.calls[2], torch.full_like(x0, -(0.3 - 0.15)), atol=1e-3, rtol=0)
+    m.config.recycle = False  # a model that does not take an estimate
+    with pytest.raises(ValueError, match="recycles need"):
+        d.sample(m, cond, 8, steps=1, recycles=1)

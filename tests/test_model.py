@@ -130,3 +130,35 @@ def test_local_context_reads_the_nearest_condition_points_only():
     # chunked over anchors = at once
     many = torch.cat([torch.randn(2, 50, 3), torch.nn.functional.normalize(torch.randn(2, 50, 3), dim=-1)], -1)
     torch.testing.assert_close(ctx(many, big.expand(2, -1, -1), chunk=7), ctx(many, big.expand(2, -1, -1)))
+
+
+def test_recycling_model_starts_as_its_source_and_reads_its_previous_estimate():
+    """A recycling model given a plain model's weights computes the plain model's function, with or
+    without an estimate (its projection starts at zero); once that projection is trained, the estimate
+    changes the output; a plain model refuses an estimate."""
+    import dataclasses
+
+    torch.manual_seed(0)
+    plain_cfg = dataclasses.replace(preset("tiny"), anchored=True, anchor_normals=True)
+    plain = PolycubeNet(plain_cfg).eval()
+    for p in plain.denoiser.out.parameters():  # a trained-like, non-zero output
+        torch.nn.init.normal_(p, std=0.1)
+    rec = PolycubeNet(dataclasses.replace(plain_cfg, recycle=True)).eval()
+    missing, unexpected = rec.load_state_dict(plain.state_dict(), strict=False)
+    assert sorted(missing) == sorted(f"denoiser.recycle.{k}" for k in rec.denoiser.recycle.state_dict())
+    assert not unexpected
+    x_t, cond = torch.randn(2, 10, 6), torch.randn(2, 20, 3)
+    anchor, t = torch.randn(2, 10, 6), torch.tensor([1023, 1023])
+    est = torch.rand(2, 10, 6) - 0.5
+    with torch.no_grad():
+        base = plain(x_t, t, cond, anchor=anchor)
+        torch.testing.assert_close(rec(x_t, t, cond, anchor=anchor), base)
+        torch.testing.assert_close(rec(x_t, t, cond, anchor=anchor, x0_prev=est), base)
+        torch.nn.init.normal_(rec.denoiser.recycle[2].weight, std=0.1)
+        changed = rec(x_t, t, cond, anchor=anchor, x0_prev=est)
+        assert (changed - base).abs().max() > 1e-3
+        # no estimate is the zero estimate (a first evaluation)
+        torch.testing.assert_close(rec(x_t, t, cond, anchor=anchor),
+                                   rec(x_t, t, cond, anchor=anchor, x0_prev=torch.zeros_like(est)))
+    with pytest.raises(ValueError, match="previous estimate"):
+        plain(x_t, t, cond, anchor=anchor, x0_prev=est)

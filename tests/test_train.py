@@ -385,3 +385,13 @@ def test_the_condition_has_its_own_resolution(shards):
     dev = DevicePairs(data, torch.device("cpu"), anchors=6)
     x0, cond, anchor = dev.batch(np.arange(3), 32, torch.Generator().manual_seed(0), cfg)
     assert x0.shape == (3, 32, 6) and cond.shape == (3, 96, 3)
+
+
+def test_recycle_needs_a_recycling_model(tmp_path):
+    """``--recycle`` on a preset whose model takes no previous estimate is refused before any training,
+    naming the preset to use."""
+    from polycubenet.train import TrainConfig, train
+
+    with pytest.raises(ValueError, match="cpu-anchored-normals-recycle"):
+        train(tmp_path / "data", tmp_path / "run", TrainConfig(preset="tiny", recycle=0.5, steps=1))
+    assert not (tmp_path / "run").exists()

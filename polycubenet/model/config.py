@@ -81,6 +81,10 @@ class ModelConfig:
         the time, thicker ones 66-78 %).
     local_ref : the local context reads at most this many condition points (an even stride through
         larger ones), so that a neighbourhood spans the same distance as in training
+    recycle : the denoiser also takes its own previous estimate of the clean cloud per point
+        (self-conditioning, or recycling: :class:`~polycubenet.model.network.Denoiser`); zeros on a
+        first evaluation.  A one-step model then evaluates twice at the same timestep, the second
+        time seeing where its first answer put every point (``train --recycle``, ``generate(recycles=)``).
     """
 
     encoder: StreamConfig
@@ -95,6 +99,7 @@ class ModelConfig:
     anchor_normals: bool = False
     local_k: int = 0
     local_ref: int = 2048
+    recycle: bool = False
 
     @property
     def anchor_dim(self) -> int:
@@ -154,6 +159,16 @@ PRESETS: dict[str, ModelConfig] = {
         anchored=True,
         anchor_normals=True,
         local_k=16,
+    ),
+    # cpu-anchored-normals that also reads its own previous estimate (ModelConfig.recycle).  ``train
+    # --init`` from a cpu-anchored-normals file starts it as that file's function: the estimate's
+    # projection starts at zero
+    "cpu-anchored-normals-recycle": ModelConfig(
+        encoder=StreamConfig(blocks=2, layers=2, dim=96, latents=64, heads=4, mlp_ratio=2.0),
+        denoiser=StreamConfig(blocks=3, layers=3, dim=96, latents=64, heads=4, mlp_ratio=2.0),
+        anchored=True,
+        anchor_normals=True,
+        recycle=True,
     ),
     "tiny": ModelConfig(
         encoder=StreamConfig(blocks=1, layers=1, dim=32, latents=8, heads=2, mlp_ratio=2.0),

@@ -175,13 +175,20 @@ class Diffusion:
         autocast: Callable | None = None,
         anchor: torch.Tensor | None = None,
         t_bias: float = 1.0,
+        t_uniform: float = 0.0,
+        recycle: float = 0.0,
     ) -> tuple[torch.Tensor, dict]:
         """One batch: random t and noise, predict the noise, the hybrid (or l2, or l1) loss.
 
         ``t_bias`` > 1 draws t towards the noisy end: ``t = T (1 - (1 - u)^t_bias)`` with u uniform
         (1: uniform, the paper's).  A model sampled in a few DDIM steps from pure noise spends its
         first step, the one that decides the shape, at t = T - 1, where the uniform draw puts
-        few samples.
+        few samples.  ``t_uniform`` > 0: that fraction of the batch (each pair with that probability)
+        draws its t uniformly instead, so a one-step model biased to the noisy end also learns the
+        low-noise timesteps at which a further DDIM step refines its first cloud.  ``recycle`` > 0 (a
+        model with ``ModelConfig.recycle``): with that probability the batch is first evaluated without
+        gradient, and the loss is that of a second evaluation given the first one's clean estimate
+        (``x0_prev``, clipped like a sampling step's); otherwise the model gets no estimate (zeros).
 
         Returns ``(loss, stats)`` where ``stats`` holds the float values of the L2 and L1
         terms and the weight used.
@@ -193,15 +200,21 @@ class Diffusion:
         else:
             u = torch.rand((B,), device=dev, generator=generator, dtype=torch.float64)
             t = (self.T * (1.0 - (1.0 - u) ** t_bias)).long().clamp_(0, self.T - 1)
+        if t_uniform > 0.0:
+            pick = torch.rand((B,), device=dev, generator=generator) < t_uniform
+            t = torch.where(pick, torch.randint(0, self.T, (B,), device=dev, generator=generator), t)
         noise = torch.randn(x0.shape, device=dev, dtype=x0.dtype, generator=generator)
         if self.pairing == "ot":
             noise = ot_pair_noise(x0, noise)
         x_t = self.q_sample(x0, t, noise)
         extra = {} if anchor is None else {"anchor": anchor}
-        if autocast is not None:
-            with autocast():
-                out = model(x_t, t, cond, **extra)
-        else:
+        ctx = autocast if autocast is not None else _null
+        recycled = recycle > 0.0 and float(torch.rand((), generator=generator, device=dev)) < recycle
+        if recycled:
+            with torch.no_grad(), ctx():
+                first = model(x_t, t, cond, **extra).float()
+            extra["x0_prev"] = self.clean_estimate(first, x_t, t).clamp(-1.0, 1.0).to(x_t.dtype)
+        with ctx():
             out = model(x_t, t, cond, **extra)
         if self.prediction == "v":
             ab = self._ab(t, x0)
@@ -228,7 +241,14 @@ class Diffusion:
         else:
             raise ValueError(f"unknown loss {loss!r} (hybrid, l2, l1)")
         total = w * l2 + (1 - w) * l1
-        return total, {"l2": float(l2.detach()), "l1": float(l1.detach()), "w": w}
+        return total, {"l2": float(l2.detach()), "l1": float(l1.detach()), "w": w, "recycled": recycled}
+
+    def clean_estimate(self, out: torch.Tensor, x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """x_0 from the network output ``out`` at per-row timesteps ``t`` (:meth:`split`'s first half)."""
+        ab = self._ab(t, x_t)
+        if self.prediction == "v":
+            return ab.sqrt() * x_t - (1 - ab).sqrt() * out
+        return (x_t - (1 - ab).sqrt() * out) / ab.sqrt().clamp_min(1e-6)
 
     # ------------------------------------------------------------------ sampling
     def timestep_pairs(self, steps: int | None = None, stride: int = 4) -> list[tuple[int, int]]:
@@ -302,6 +322,7 @@ class Diffusion:
         autocast: Callable | None = None,
         progress: Callable[[int, int], None] | None = None,
         anchor: torch.Tensor | None = None,
+        recycles: int = 0,
     ) -> torch.Tensor:
         """Generate ``(B, n_out, point_dim)`` clouds in network units for conditions ``cond``.
 
@@ -310,6 +331,9 @@ class Diffusion:
         randomness comes from ``generator`` (on the device of ``cond``), so a seed
         reproduces the output; a list of generators gives each batch element its own
         stream (its result then does not depend on the rest of the batch).
+
+        A recycling model (``model.config.recycle``) gets its latest clean estimate with every
+        evaluation (zeros at the first), and each step evaluates it ``1 + recycles`` times.
         """
         B = cond.shape[0]
         dev = cond.device
@@ -319,11 +343,19 @@ class Diffusion:
         with ctx:
             z_c = model.encode(cond, chunk=chunk)
         pairs = self.timestep_pairs(steps, stride)
+        recycling = bool(getattr(getattr(model, "config", None), "recycle", False))
+        if recycles and not recycling:
+            raise ValueError("recycles need a model that takes its previous estimate (ModelConfig.recycle)")
+        extra = {} if anchor is None else {"anchor": anchor}
         for i, (t, t_prev) in enumerate(pairs):
             tt = torch.full((B,), t, device=dev, dtype=torch.long)
-            with (autocast() if autocast is not None else _null()):
-                eps = model.denoise(x, tt, z_c, chunk=chunk, **({} if anchor is None else {"anchor": anchor}))
-            eps = eps.float()
+            for _ in range(1 + (int(recycles) if recycling else 0)):
+                with (autocast() if autocast is not None else _null()):
+                    eps = model.denoise(x, tt, z_c, chunk=chunk, **extra)
+                eps = eps.float()
+                if recycling:
+                    x0 = self.split(eps, x, t)[0]
+                    extra["x0_prev"] = (x0.clamp(-clip, clip) if clip is not None else x0).to(x.dtype)
             noise = _randn(x.shape, dev, generator) if eta > 0 and t_prev >= 0 else None
             x = self.ddim_step(x, eps, t, t_prev, eta, noise, clip)
             if progress is not None:

@@ -256,7 +256,7 @@ class Denoiser(nn.Module):
     """eps_theta(x_t, z_c, t): TS blocks over x_t with latents ``[z_c, z_init, embed(t)]``."""
 
     def __init__(self, cfg: StreamConfig, point_dim: int, cond_width: int, fourier: int, anchor_dim: int = 0,
-                 local: LocalContext | None = None):
+                 local: LocalContext | None = None, recycle: bool = False):
         super().__init__()
         d = cfg.dim
         if local is not None and anchor_dim == 0:
@@ -275,9 +275,17 @@ class Denoiser(nn.Module):
         self.out = nn.Linear(d, point_dim)
         nn.init.zeros_(self.out.weight)
         nn.init.zeros_(self.out.bias)
+        # recycling: the previous estimate of the clean point, added to the point stream; the last layer
+        # starts at zero, so the model starts as the function of a file without it
+        self.recycle = None
+        if recycle:
+            self.recycle = nn.Sequential(nn.Linear(point_dim, d), nn.GELU(), nn.Linear(d, d))
+            nn.init.zeros_(self.recycle[2].weight)
+            nn.init.zeros_(self.recycle[2].bias)
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, z_c: torch.Tensor | tuple[torch.Tensor, torch.Tensor],
-                chunk: int | None = None, anchor: torch.Tensor | None = None) -> torch.Tensor:
+                chunk: int | None = None, anchor: torch.Tensor | None = None,
+                x0_prev: torch.Tensor | None = None) -> torch.Tensor:
         B = x_t.shape[0]
         cond = None
         if isinstance(z_c, tuple):  # (tokens, condition points) from a model with a local context
@@ -286,6 +294,10 @@ class Denoiser(nn.Module):
             raise ValueError("a local context needs the condition points with its tokens (and only it takes them)")
         if self.anchored != (anchor is not None):
             raise ValueError("an anchored denoiser needs anchor points (and only it takes them)")
+        if x0_prev is not None and self.recycle is None:
+            raise ValueError("this denoiser does not take a previous estimate (ModelConfig.recycle)")
+        if x0_prev is not None and x0_prev.shape != x_t.shape:
+            raise ValueError(f"the previous estimate has shape {tuple(x0_prev.shape)}, x_t {tuple(x_t.shape)}")
         if anchor is not None and anchor.shape[-1] != self.anchor_dim:
             raise ValueError(f"anchors have {anchor.shape[-1]} channels; this denoiser takes {self.anchor_dim}")
         # one row at a time: a (B, d) GEMM takes another kernel for B = 1 than for B > 1, so a batched
@@ -297,6 +309,8 @@ class Denoiser(nn.Module):
         x = _embed_chunked(self.embed, inp, chunk, add=temb[:, None])
         if self.local is not None:
             x = x + self.local(anchor, cond, chunk)
+        if self.recycle is not None:
+            x = x + self.recycle((torch.zeros_like(x_t) if x0_prev is None else x0_prev).to(x.dtype))
         for block in self.blocks:
             x, z = block(x, z, chunk=chunk)
         if chunk is not None and x.shape[1] > chunk:
@@ -336,7 +350,7 @@ class PolycubeNet(nn.Module):
             local = LocalContext(config.local_k, config.denoiser.dim, config.anchor_dim, 0.05 * config.xyz_scale,
                                  config.local_ref)
         self.denoiser = Denoiser(config.denoiser, config.point_dim, config.encoder.dim, config.fourier,
-                                 anchor_dim=config.anchor_dim, local=local)
+                                 anchor_dim=config.anchor_dim, local=local, recycle=config.recycle)
 
     def encode(self, cond: torch.Tensor, chunk: int | None = None) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         """The condition tokens z_c; with a local context (``config.local_k``) ``(z_c, cond)``, which
@@ -345,12 +359,13 @@ class PolycubeNet(nn.Module):
         return (z, cond) if self.config.local_k else z
 
     def denoise(self, x_t: torch.Tensor, t: torch.Tensor, z_c: torch.Tensor, chunk: int | None = None,
-                anchor: torch.Tensor | None = None) -> torch.Tensor:
-        return self.denoiser(x_t, t, z_c, chunk=chunk, anchor=anchor)
+                anchor: torch.Tensor | None = None, x0_prev: torch.Tensor | None = None) -> torch.Tensor:
+        extra = {} if x0_prev is None else {"x0_prev": x0_prev}
+        return self.denoiser(x_t, t, z_c, chunk=chunk, anchor=anchor, **extra)
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: torch.Tensor,
-                anchor: torch.Tensor | None = None) -> torch.Tensor:
-        return self.denoise(x_t, t, self.encode(cond), anchor=anchor)
+                anchor: torch.Tensor | None = None, x0_prev: torch.Tensor | None = None) -> torch.Tensor:
+        return self.denoise(x_t, t, self.encode(cond), anchor=anchor, x0_prev=x0_prev)
 
 
 def count_parameters(module: nn.Module) -> int:
