@@ -287,6 +287,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--n-out", type=int, default=8192)
     ap.add_argument("--n-in", type=int, help="subsample the condition to this many points")
     ap.add_argument("--steps", type=int, default=64, help="DDIM steps (0: stride 4)")
+    ap.add_argument("--timesteps", help="explicit DDIM timesteps instead of --steps, e.g. 1023,64: the one-step "
+                                        "jump, then a refining step from t = 64")
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--recycles", type=int, help="a recycling model's further evaluations per step (default: 1 for one)")
     ap.add_argument("--seed", type=int, default=0)
@@ -298,7 +300,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--publish", help="also write the shipped checkpoint (EMA, float16, metrics) here")
     args = ap.parse_args(argv)
     res = evaluate(args.checkpoint, args.data, args.count, n_out=args.n_out, n_in=args.n_in,
-                   steps=args.steps or None, seed=args.seed, structure=not args.no_structure, batch=args.batch,
+                   steps=(tuple(int(t) for t in args.timesteps.split(",")) if args.timesteps else args.steps or None),
+                   seed=args.seed, structure=not args.no_structure, batch=args.batch,
                    device=args.device, identity=args.identity, recycles=args.recycles)
     summary = {k: v for k, v in res.items() if k != "rows"}
     print(json.dumps(summary, indent=1))

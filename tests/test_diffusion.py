@@ -297,3 +297,15 @@ def test_recycle_trains_the_second_evaluation_on_the_first_ones_clean_estimate()
     m.config.recycle = False  # a model that does not take an estimate
     with pytest.raises(ValueError, match="recycles need"):
         d.sample(m, cond, 8, steps=1, recycles=1)
+
+
+def test_explicit_timesteps_give_a_jump_then_a_refining_step():
+    """A sequence of timesteps is taken as it is, from the noisiest down: ``(1023, 64)`` is the one-step jump
+    to t = 64, then one step to x_0; repeated or out-of-range timesteps are refused."""
+    d = Diffusion(prediction="v", schedule="cosine_ztsnr")
+    assert d.timestep_pairs((1023, 64)) == [(1023, 64), (64, -1)]
+    assert d.timestep_pairs([64, 1023]) == [(1023, 64), (64, -1)]
+    assert d.timestep_pairs(1) == [(1023, -1)]
+    for bad in ((1023, 1023), (1024, 3), (-1, 5)):
+        with pytest.raises(ValueError, match="explicit timesteps"):
+            d.timestep_pairs(bad)

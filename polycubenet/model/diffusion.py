@@ -254,10 +254,16 @@ class Diffusion:
     def timestep_pairs(self, steps: int | None = None, stride: int = 4) -> list[tuple[int, int]]:
         """``(t, t_prev)`` pairs from T-1 down to 0 (``t_prev = -1`` means "x_0").
 
-        ``steps`` (when given) spaces that many timesteps evenly; otherwise every
-        ``stride``-th timestep is used (stride 4 -> 256 network evaluations at T = 1024).
+        ``steps`` (when given) spaces that many timesteps evenly, or, a sequence, lists the timesteps
+        themselves (e.g. ``(1023, 64)``: the one-step jump from pure noise, then one refining step from
+        t = 64); otherwise every ``stride``-th timestep is used (stride 4 -> 256 network evaluations at
+        T = 1024).
         """
-        if steps is not None:
+        if steps is not None and not isinstance(steps, (int, np.integer)):
+            ts = np.unique(np.asarray(steps, dtype=int))
+            if len(ts) != len(steps) or ts[0] < 0 or ts[-1] > self.T - 1:
+                raise ValueError(f"explicit timesteps must be distinct and in 0..{self.T - 1}, got {list(steps)}")
+        elif steps is not None:
             if not 1 <= steps <= self.T:
                 raise ValueError(f"steps must be in 1..{self.T}, got {steps}")
             # from T-1 (pure noise under zero terminal SNR) down: one step is a single jump from T-1 to x_0
