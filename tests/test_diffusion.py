@@ -309,3 +309,29 @@ def test_explicit_timesteps_give_a_jump_then_a_refining_step():
     for bad in ((1023, 1023), (1024, 3), (-1, 5)):
         with pytest.raises(ValueError, match="explicit timesteps"):
             d.timestep_pairs(bad)
+
+
+def test_point_weight_scales_each_points_squared_error():
+    """A point's weight multiplies its share of the L2 term: weight 0 on a point removes it, and with
+    weights that sum as before the loss is the weighted mean, not the plain one."""
+    d = Diffusion()
+    x0 = torch.randn(2, 20, 6)
+    cond = torch.randn(2, 30, 3)
+    out = {}
+
+    def model(x_t, t, c):  # a fixed prediction, so the loss is a known function of the target
+        out["x_t"], out["t"] = x_t, t
+        return torch.zeros_like(x_t)
+
+    _, plain = d.training_loss(model, x0, cond, loss="l2", generator=torch.Generator().manual_seed(0))
+    w = torch.ones(2, 20)
+    w[:, :10] = 2.0
+    w[:, 10:] = 0.0
+    _, weighted = d.training_loss(model, x0, cond, loss="l2", generator=torch.Generator().manual_seed(0), point_weight=w)
+    ab = d._ab(out["t"], x0)
+    noise = (out["x_t"] - ab.sqrt() * x0) / (1 - ab).sqrt()
+    target = noise if d.prediction == "eps" else ab.sqrt() * noise - (1 - ab).sqrt() * x0
+    per_point = target.pow(2).mean(dim=-1)
+    assert plain["l2"] == pytest.approx(float(per_point.mean()), rel=1e-4)
+    assert weighted["l2"] == pytest.approx(float((w * per_point).mean()), rel=1e-4)
+    assert weighted["l2"] != pytest.approx(plain["l2"], rel=1e-3)

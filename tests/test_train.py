@@ -395,3 +395,54 @@ def test_recycle_needs_a_recycling_model(tmp_path):
     with pytest.raises(ValueError, match="cpu-anchored-normals-recycle"):
         train(tmp_path / "data", tmp_path / "run", TrainConfig(preset="tiny", recycle=0.5, steps=1))
     assert not (tmp_path / "run").exists()
+
+
+def test_face_weights_lift_the_points_of_a_small_plane():
+    """Target points on a plane that holds few of the pair's points weigh more than those on a large
+    one, by the share to -power; the same coordinate on another axis or side is another plane."""
+    from polycubenet.train import face_weights
+
+    n_big, n_small = 90, 10
+    pts = torch.zeros(1, n_big + n_small, 6)
+    pts[0, :n_big, :3] = torch.rand(n_big, 3)
+    pts[0, :n_big, 2] = 0.0  # the bottom z = 0, normal -z
+    pts[0, :n_big, 5] = -1.0
+    pts[0, n_big:, :3] = torch.rand(n_small, 3)
+    pts[0, n_big:, 2] = 0.3  # a small face z = 0.3, normal +z
+    pts[0, n_big:, 5] = 1.0
+    w = face_weights(pts, 0.5)
+    assert float(w.mean()) == pytest.approx(1.0, rel=1e-5)
+    assert torch.allclose(w[0, :n_big], w[0, 0]) and torch.allclose(w[0, n_big:], w[0, n_big])
+    assert float(w[0, n_big] / w[0, 0]) == pytest.approx((0.1 / 0.9) ** -0.5, rel=1e-4)
+    # the small face's points turned to face -z at z = 0 join the bottom plane: all weights equal
+    same = pts.clone()
+    same[0, n_big:, 2], same[0, n_big:, 5] = 0.0, -1.0
+    assert torch.allclose(face_weights(same, 0.5), torch.ones(1, n_big + n_small))
+    # at z = 0 but facing +z: another plane (the other side), weighted as the small one was
+    other_side = same.clone()
+    other_side[0, n_big:, 5] = 1.0
+    assert torch.allclose(face_weights(other_side, 0.5), w)
+    # the cap (a multiple of the pair's mean, before the final scaling) bounds a lone point's weight:
+    # uncapped it would be 90 times the bottom's, capped it weighs what the capped small plane does
+    lone = pts.clone()
+    lone[0, -1, 2] = 0.7
+    lw = face_weights(lone, 1.0, cap=3.0)
+    assert float(lw[0, -1]) == pytest.approx(float(lw[0, n_big]), rel=1e-5)
+    assert float(lw[0, -1] / lw[0, 0]) < 10.0
+
+
+def test_face_weight_trains_and_is_recorded_in_the_recipe(shards, tmp_path):
+    """--face-weight changes the loss of the same draws, and is a recipe flag: a run records it, and
+    recipe_flags gives it back for a continuation."""
+    from polycubenet.train import recipe_flags
+
+    cfg = dataclasses.replace(CFG, preset="tiny", steps=2, log_every=1, ckpt_every=2)
+    losses = {}
+    for fw in (0.0, 0.5):
+        run = tmp_path / f"fw{fw}"
+        train(shards, run, dataclasses.replace(cfg, face_weight=fw), progress=False)
+        rows = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+        losses[fw] = rows[0]["loss_l2"]
+        flags = recipe_flags(run / "last.pt")
+        assert float(flags[flags.index("--face-weight") + 1]) == fw
+    assert np.isfinite(losses[0.5]) and losses[0.5] != pytest.approx(losses[0.0], rel=1e-4)

@@ -177,6 +177,7 @@ class Diffusion:
         t_bias: float = 1.0,
         t_uniform: float = 0.0,
         recycle: float = 0.0,
+        point_weight: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, dict]:
         """One batch: random t and noise, predict the noise, the hybrid (or l2, or l1) loss.
 
@@ -189,6 +190,7 @@ class Diffusion:
         model with ``ModelConfig.recycle``): with that probability the batch is first evaluated without
         gradient, and the loss is that of a second evaluation given the first one's clean estimate
         (``x0_prev``, clipped like a sampling step's); otherwise the model gets no estimate (zeros).
+        ``point_weight`` (``(B, N)``, mean 1): each point's share of the loss (``train.face_weights``).
 
         Returns ``(loss, stats)`` where ``stats`` holds the float values of the L2 and L1
         terms and the weight used.
@@ -222,6 +224,8 @@ class Diffusion:
         else:
             target = noise
         err = out.float() - target.float()
+        if point_weight is not None:  # a weight w on a point's squared error, sqrt(w) on its error
+            err = err * point_weight.float().sqrt().unsqueeze(-1)
         if self.min_snr is not None:
             ab = torch.as_tensor(self.alpha_bar, device=dev)[t]
             snr = ab / (1 - ab).clamp_min(1e-12)
