@@ -189,7 +189,8 @@ def cad_pair(seed: int, *, n_cond: int = 2048, n_target: int = 2048, n_check: in
     F = np.asarray(part.faces, np.int64)
     try:
         genus = surface_genus(F)
-        Vp, Vs, Fs, labels, info = classical_polycube(Vc, F, ClassicalConfig(), seed=0)
+        # one orientation: a turned flattening is not kept (its polycube is not axis-aligned in this frame)
+        Vp, Vs, Fs, labels, info = classical_polycube(Vc, F, ClassicalConfig(orientations=1), seed=0)
     except PolycubeError:
         return drop("classical")
     if info.get("orientation", 0) != 0:
@@ -242,12 +243,13 @@ def write_cad_shards(out: str | Path, count: int, seed: int, *, per_shard: int =
     done = len(written) * per_shard
     records: list[dict] = []
     tried = kept = 0
+    dropped: dict = {}
     t0 = time.perf_counter()
     while done + len(records) < count:
         s = seed * 1_000_000 + k
         k += 1
         tried += 1
-        rec = cad_pair(s, n_cond=n_cond, n_target=n_target)
+        rec = cad_pair(s, n_cond=n_cond, n_target=n_target, why=dropped)
         if rec is None:
             continue
         kept += 1
@@ -259,11 +261,11 @@ def write_cad_shards(out: str | Path, count: int, seed: int, *, per_shard: int =
             written.append(path)
             done += len(records)
             records = []
-            state.write_text(json.dumps({"next_k": k}))
+            state.write_text(json.dumps({"next_k": k, "dropped_this_run": dropped}))
         if progress:
             el = time.perf_counter() - t0
             print(f"[cad] {done + len(records)}/{count} pairs kept of {tried} parts tried, {el:.0f} s "
-                  f"({el / max(kept, 1):.1f} s a kept pair)", flush=True)
+                  f"({el / max(kept, 1):.1f} s a kept pair; dropped: {dropped or 'none'})", flush=True)
     return written
 
 
