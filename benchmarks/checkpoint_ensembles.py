@@ -87,7 +87,7 @@ def main(argv=None) -> int:
     torch.save(state, soup_path)
 
     ens = Ensemble([lo.model for lo in loaded]).eval()
-    rows = {Path(c).stem: c for c in args.checkpoints}
+    rows = {Path(c).stem: lo for c, lo in zip(args.checkpoints, loaded)}  # the models already read
     rows["soup"] = str(soup_path)
     rows["ensemble"] = Loaded(model=ens, diffusion=loaded[0].diffusion, meta=dict(loaded[0].meta), path=loaded[0].path)
     keep = ("exact_structure_rate", "exact_structure_rate_genus_le2", "genus_match_rate", "chamfer_median",
