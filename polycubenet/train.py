@@ -350,6 +350,32 @@ def _widen_anchor_embed(src: dict, own: dict, mcfg: ModelConfig) -> dict:
     return {key: w}
 
 
+def _widen_hidden(src: dict, own: dict) -> dict:
+    """Starting a model with wider feed-forward layers from one with narrower ones (a preset with a
+    larger ``write_mlp_ratio``): each layer keeps the old hidden units as its first ones, the added
+    units keep their fresh input weights and get zero output weights, so the new model starts as
+    exactly the old function and the added units learn from the first step."""
+    out = {}
+    for key, w_new in own.items():
+        if not key.endswith((".net.0.weight", ".net.0.bias", ".net.2.weight")) or key not in src:
+            continue
+        w_old = src[key].float()
+        if w_old.shape == w_new.shape or w_old.dim() != w_new.dim():
+            continue
+        if key.endswith(".net.2.weight"):  # (dim, hidden): the added columns start at zero
+            if w_old.shape[0] != w_new.shape[0] or w_old.shape[1] > w_new.shape[1]:
+                continue
+            w = torch.zeros_like(w_new)
+            w[:, : w_old.shape[1]] = w_old
+        else:  # (hidden, dim) or (hidden,): the added rows keep their fresh initialisation
+            if w_old.shape[1:] != w_new.shape[1:] or w_old.shape[0] > w_new.shape[0]:
+                continue
+            w = w_new.detach().clone().float()
+            w[: w_old.shape[0]] = w_old
+        out[key] = w
+    return out
+
+
 @torch.no_grad()
 def _to_net(batch, mcfg: ModelConfig, dev) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """``(x0, cond, anchor)`` in network units on ``dev`` (anchor None for a free-point model)."""
@@ -441,8 +467,8 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
         own = model.state_dict()
         take = {k: (v.float() if v.is_floating_point() else v) for k, v in src["ema"].items()
                 if k in own and own[k].shape == v.shape}
-        widened = _widen_anchor_embed(src, own, mcfg)
-        take.update(widened)
+        take.update(_widen_anchor_embed(src, own, mcfg))
+        take.update(_widen_hidden(src["ema"], own))
         model.load_state_dict(take, strict=False)
         fresh = sorted(set(own) - set(take))
         # latent layers the file does not have (a deeper preset) start as identities: the same function

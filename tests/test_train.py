@@ -246,6 +246,36 @@ def test_a_deeper_model_starts_as_the_shallower_one_it_grows(shards, tmp_path):
     assert grown.denoiser.blocks[0].layers[2].ff.net[-1].weight.abs().sum() > 0
 
 
+def test_a_wider_write_network_starts_as_the_narrower_one_it_widens(shards, tmp_path):
+    """``--init`` into a preset with wider per-point feed-forward layers (``cpu-anchored-normals-wide-write``
+    over ``cpu-anchored-normals``): the old hidden units are kept, the added ones start with zero output
+    weights, so the wider model computes the narrower one's function until it trains; then they learn."""
+    from polycubenet.model import preset as model_preset
+
+    old_cfg = dataclasses.replace(model_preset("tiny"), anchored=True)
+    train(shards, tmp_path / "old", dataclasses.replace(CFG, steps=3), progress=False, model_config=old_cfg)
+    old = load_checkpoint(tmp_path / "old" / "last.pt").model.eval()
+    wide_cfg = dataclasses.replace(old_cfg, denoiser=dataclasses.replace(old_cfg.denoiser, write_mlp_ratio=6.0))
+    train(shards, tmp_path / "new", dataclasses.replace(CFG, steps=1, lr=0.0), progress=False,
+          model_config=wide_cfg, init=tmp_path / "old" / "last.pt")
+    new = load_checkpoint(tmp_path / "new" / "last.pt").model.eval()
+    w_old, w_new = old.denoiser.blocks[0].write_ff.net[0].weight, new.denoiser.blocks[0].write_ff.net[0].weight
+    assert w_new.shape[0] == 3 * w_old.shape[0]  # 6.0 against the preset's 2.0
+    assert new.denoiser.blocks[0].read_ff.net[0].weight.shape == old.denoiser.blocks[0].read_ff.net[0].weight.shape
+    g = torch.Generator().manual_seed(0)
+    x, cond, anchor = torch.randn(2, 20, 6, generator=g), torch.randn(2, 30, 3, generator=g), torch.randn(2, 20, 3, generator=g)
+    t = torch.tensor([300, 900])
+    with torch.no_grad():
+        torch.testing.assert_close(new(x, t, cond, anchor=anchor), old(x, t, cond, anchor=anchor))
+    # the added units are live (fresh input weights) and learn: a step moves their zero output weights
+    n_old = w_old.shape[0]
+    assert w_new[n_old:].abs().sum() > 0
+    train(shards, tmp_path / "more", dataclasses.replace(CFG, steps=2, warmup=0, lr=1e-2), progress=False,
+          model_config=wide_cfg, init=tmp_path / "old" / "last.pt")
+    grown = load_checkpoint(tmp_path / "more" / "last.pt").model
+    assert grown.denoiser.blocks[0].write_ff.net[2].weight[:, n_old:].abs().sum() > 0
+
+
 def test_a_growing_folder_is_reread_loading_only_the_new_shards(shards, tmp_path, monkeypatch):
     import shutil
 

@@ -30,6 +30,8 @@ class StreamConfig:
     latents : learned latent tokens of this stack
     heads : attention heads
     mlp_ratio : hidden width of the feed-forward layers, in multiples of ``dim``
+    write_mlp_ratio : hidden width of the feed-forward layer after each write (the point stream's own
+        per-point network), in multiples of ``dim`` (0: ``mlp_ratio``)
     """
 
     blocks: int
@@ -38,6 +40,7 @@ class StreamConfig:
     latents: int
     heads: int
     mlp_ratio: float = 4.0
+    write_mlp_ratio: float = 0.0
 
     def __post_init__(self):
         for name in ("blocks", "layers", "dim", "latents", "heads"):
@@ -147,6 +150,16 @@ PRESETS: dict[str, ModelConfig] = {
     "cpu-anchored-normals-deep": ModelConfig(
         encoder=StreamConfig(blocks=2, layers=2, dim=96, latents=64, heads=4, mlp_ratio=2.0),
         denoiser=StreamConfig(blocks=3, layers=5, dim=96, latents=64, heads=4, mlp_ratio=2.0),
+        anchored=True,
+        anchor_normals=True,
+    ),
+    # cpu-anchored-normals with three times the hidden width in the denoiser's per-point feed-forward layers
+    # (after each write: 576 instead of 192), the network that places each generated point.  ``train --init``
+    # from a cpu-anchored-normals file starts it as that file's function: the added hidden units' output
+    # weights start at zero (``train._widen_hidden``)
+    "cpu-anchored-normals-wide-write": ModelConfig(
+        encoder=StreamConfig(blocks=2, layers=2, dim=96, latents=64, heads=4, mlp_ratio=2.0),
+        denoiser=StreamConfig(blocks=3, layers=3, dim=96, latents=64, heads=4, mlp_ratio=2.0, write_mlp_ratio=6.0),
         anchored=True,
         anchor_normals=True,
     ),

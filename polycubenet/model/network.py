@@ -136,7 +136,7 @@ class TwoStreamBlock(nn.Module):
             self.write_norm_x = nn.LayerNorm(d)
             self.write_norm_z = nn.LayerNorm(d)
             self.write = Attention(d, cfg.heads)
-            self.write_ff = FeedForward(d, cfg.mlp_ratio)
+            self.write_ff = FeedForward(d, cfg.write_mlp_ratio or cfg.mlp_ratio)
 
     def forward(self, x: torch.Tensor, z: torch.Tensor, chunk: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         big = chunk is not None and x.shape[1] > chunk
