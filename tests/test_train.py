@@ -220,25 +220,35 @@ def test_an_anchor_normals_model_starts_as_the_anchored_one_it_widens(shards, tm
         new(x, t, cond, anchor=anchor)
 
 
-def test_a_deeper_model_starts_as_the_shallower_one_it_grows(shards, tmp_path):
-    """``--init`` into a preset with more latent layers per block (``cpu-anchored-normals-deep`` over
-    ``cpu-anchored-normals``): the added layers start as identities, so the deeper model computes the
-    shallower one's function until it trains; they are fresh, not zero, once it has trained."""
+def _grown_from_tiny(shards, tmp_path, **denoiser):
+    """A tiny anchored model trained 3 steps, and a model whose denoiser differs by ``denoiser`` started from
+    it by ``--init`` (one step at learning rate 0): ``(old, new, new config)``."""
     from polycubenet.model import preset as model_preset
 
     old_cfg = dataclasses.replace(model_preset("tiny"), anchored=True)
     train(shards, tmp_path / "old", dataclasses.replace(CFG, steps=3), progress=False, model_config=old_cfg)
     old = load_checkpoint(tmp_path / "old" / "last.pt").model.eval()
-    deep_cfg = dataclasses.replace(old_cfg, denoiser=dataclasses.replace(old_cfg.denoiser, layers=3))
+    new_cfg = dataclasses.replace(old_cfg, denoiser=dataclasses.replace(old_cfg.denoiser, **denoiser))
     train(shards, tmp_path / "new", dataclasses.replace(CFG, steps=1, lr=0.0), progress=False,
-          model_config=deep_cfg, init=tmp_path / "old" / "last.pt")
-    new = load_checkpoint(tmp_path / "new" / "last.pt").model.eval()
-    assert len(new.denoiser.blocks[0].layers) == 3 and len(old.denoiser.blocks[0].layers) == 1
+          model_config=new_cfg, init=tmp_path / "old" / "last.pt")
+    return old, load_checkpoint(tmp_path / "new" / "last.pt").model.eval(), new_cfg
+
+
+def _assert_same_function(a, b):
     g = torch.Generator().manual_seed(0)
     x, cond, anchor = torch.randn(2, 20, 6, generator=g), torch.randn(2, 30, 3, generator=g), torch.randn(2, 20, 3, generator=g)
     t = torch.tensor([300, 900])
     with torch.no_grad():
-        torch.testing.assert_close(new(x, t, cond, anchor=anchor), old(x, t, cond, anchor=anchor))
+        torch.testing.assert_close(b(x, t, cond, anchor=anchor), a(x, t, cond, anchor=anchor))
+
+
+def test_a_deeper_model_starts_as_the_shallower_one_it_grows(shards, tmp_path):
+    """``--init`` into a preset with more latent layers per block (``cpu-anchored-normals-deep`` over
+    ``cpu-anchored-normals``): the added layers start as identities, so the deeper model computes the
+    shallower one's function until it trains; they are fresh, not zero, once it has trained."""
+    old, new, deep_cfg = _grown_from_tiny(shards, tmp_path, layers=3)
+    assert len(new.denoiser.blocks[0].layers) == 3 and len(old.denoiser.blocks[0].layers) == 1
+    _assert_same_function(old, new)
     # and the added layers learn: a step with a learning rate moves their zeroed projections
     train(shards, tmp_path / "more", dataclasses.replace(CFG, steps=2, warmup=0, lr=1e-2), progress=False,
           model_config=deep_cfg, init=tmp_path / "old" / "last.pt")
@@ -250,23 +260,11 @@ def test_a_wider_write_network_starts_as_the_narrower_one_it_widens(shards, tmp_
     """``--init`` into a preset with wider per-point feed-forward layers (``cpu-anchored-normals-wide-write``
     over ``cpu-anchored-normals``): the old hidden units are kept, the added ones start with zero output
     weights, so the wider model computes the narrower one's function until it trains; then they learn."""
-    from polycubenet.model import preset as model_preset
-
-    old_cfg = dataclasses.replace(model_preset("tiny"), anchored=True)
-    train(shards, tmp_path / "old", dataclasses.replace(CFG, steps=3), progress=False, model_config=old_cfg)
-    old = load_checkpoint(tmp_path / "old" / "last.pt").model.eval()
-    wide_cfg = dataclasses.replace(old_cfg, denoiser=dataclasses.replace(old_cfg.denoiser, write_mlp_ratio=6.0))
-    train(shards, tmp_path / "new", dataclasses.replace(CFG, steps=1, lr=0.0), progress=False,
-          model_config=wide_cfg, init=tmp_path / "old" / "last.pt")
-    new = load_checkpoint(tmp_path / "new" / "last.pt").model.eval()
+    old, new, wide_cfg = _grown_from_tiny(shards, tmp_path, write_mlp_ratio=6.0)
     w_old, w_new = old.denoiser.blocks[0].write_ff.net[0].weight, new.denoiser.blocks[0].write_ff.net[0].weight
     assert w_new.shape[0] == 3 * w_old.shape[0]  # 6.0 against the preset's 2.0
     assert new.denoiser.blocks[0].read_ff.net[0].weight.shape == old.denoiser.blocks[0].read_ff.net[0].weight.shape
-    g = torch.Generator().manual_seed(0)
-    x, cond, anchor = torch.randn(2, 20, 6, generator=g), torch.randn(2, 30, 3, generator=g), torch.randn(2, 20, 3, generator=g)
-    t = torch.tensor([300, 900])
-    with torch.no_grad():
-        torch.testing.assert_close(new(x, t, cond, anchor=anchor), old(x, t, cond, anchor=anchor))
+    _assert_same_function(old, new)
     # the added units are live (fresh input weights) and learn: a step moves their zero output weights
     n_old = w_old.shape[0]
     assert w_new[n_old:].abs().sum() > 0
