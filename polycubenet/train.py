@@ -78,6 +78,7 @@ class TrainConfig:
     fit_steps: bool = False  # with a time limit: re-fit `steps` to the measured pace, so the cosine ends with the time
     fresh_lr_mult: float = 1.0  # the learning rate of parameters an --init file does not have (a new module), times this
     face_weight: float = 0.0  # > 0: each target point's loss weighted by its plane's share of the points to -this (face_weights)
+    normal_weight: float = 1.0  # a point's error along its target normal (across its plane) weighs this much (Diffusion.training_loss)
 
 
 def _cond_points(cfg: "TrainConfig | None", points: int) -> int:
@@ -554,7 +555,8 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
         model.train()
         loss, stats = diffusion.training_loss(net, x0, cond, loss=cfg.loss, generator=gen, autocast=autocast,
                                               anchor=anchor, t_bias=cfg.t_bias,
-                                              t_uniform=cfg.t_uniform, recycle=cfg.recycle, point_weight=weight)
+                                              t_uniform=cfg.t_uniform, recycle=cfg.recycle, point_weight=weight,
+                                              normal_weight=cfg.normal_weight)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         gnorm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.clip))
@@ -617,7 +619,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
 def recipe_flags(checkpoint: str | Path) -> list[str]:
     """The ``train`` flags of the recipe a checkpoint was trained with (preset, diffusion, points,
     condition points, batch, anchor gain, t bias and its uniform share, recycling share,
-    face weight), so a run continues it (``scripts/train_session.sh``,
+    face weight, normal weight), so a run continues it (``scripts/train_session.sh``,
     ``scripts/device_train.sh``; a later ``--batch`` on the command line wins)."""
     s = torch.load(checkpoint, map_location="cpu", weights_only=False)
     d, tc = s.get("diffusion") or {}, s.get("train_config") or {}
@@ -627,7 +629,8 @@ def recipe_flags(checkpoint: str | Path) -> list[str]:
             "--points", str(tc.get("points", 512)), "--cond-points", str(tc.get("cond_points", 0)),
             "--batch", str(tc.get("batch", 12)), "--anchor-gain", str((s.get("model_config") or {}).get("anchor_gain", 0.0)),
             "--t-bias", str(tc.get("t_bias", 1.0)), "--t-uniform", str(tc.get("t_uniform", 0.0)),
-            "--recycle", str(tc.get("recycle", 0.0)), "--face-weight", str(tc.get("face_weight", 0.0))]
+            "--recycle", str(tc.get("recycle", 0.0)), "--face-weight", str(tc.get("face_weight", 0.0)),
+            "--normal-weight", str(tc.get("normal_weight", 1.0))]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -335,3 +335,35 @@ def test_point_weight_scales_each_points_squared_error():
     assert plain["l2"] == pytest.approx(float(per_point.mean()), rel=1e-4)
     assert weighted["l2"] == pytest.approx(float((w * per_point).mean()), rel=1e-4)
     assert weighted["l2"] != pytest.approx(plain["l2"], rel=1e-3)
+
+
+def test_normal_weight_scales_the_error_across_the_plane_only():
+    """A point's error along its target normal (off its plane) weighs ``normal_weight``; along the plane, 1."""
+    d = Diffusion(prediction="v", schedule="cosine_ztsnr")
+    x0 = torch.zeros(1, 8, 6)
+    x0[..., :3] = torch.randn(1, 8, 3)
+    x0[..., 5] = 1.0  # every target point on a plane of normal +z
+    cond = torch.randn(1, 16, 3)
+
+    class Off(torch.nn.Module):  # the exact v target at t = T - 1 (-x0) moved by ``shift``
+        def __init__(self, shift):
+            super().__init__()
+            self.shift = shift
+
+        def forward(self, x_t, t, cond):
+            assert int(t.min()) == d.T - 1
+            return -x0 + self.shift
+
+    across, along = torch.zeros(6), torch.zeros(6)
+    across[2], along[0] = 0.1, 0.1
+
+    def l2(shift, w):
+        return d.training_loss(Off(shift), x0, cond, loss="l2", t_bias=1e6, normal_weight=w,
+                               generator=torch.Generator().manual_seed(0))[1]["l2"]
+
+    assert l2(across, 1.0) == pytest.approx(l2(along, 1.0))
+    assert l2(across, 4.0) == pytest.approx(4.0 * l2(across, 1.0), rel=1e-5)
+    assert l2(along, 4.0) == pytest.approx(l2(along, 1.0), rel=1e-5)  # sliding along the plane costs the same
+    diag = torch.zeros(6)
+    diag[0] = diag[2] = 0.1  # half across, half along: only the across half is scaled
+    assert l2(diag, 4.0) == pytest.approx(l2(across, 4.0) + l2(along, 1.0), rel=1e-5)

@@ -178,6 +178,7 @@ class Diffusion:
         t_uniform: float = 0.0,
         recycle: float = 0.0,
         point_weight: torch.Tensor | None = None,
+        normal_weight: float = 1.0,
     ) -> tuple[torch.Tensor, dict]:
         """One batch: random t and noise, predict the noise, the hybrid (or l2, or l1) loss.
 
@@ -191,6 +192,10 @@ class Diffusion:
         gradient, and the loss is that of a second evaluation given the first one's clean estimate
         (``x0_prev``, clipped like a sampling step's); otherwise the model gets no estimate (zeros).
         ``point_weight`` (``(B, N)``, mean 1): each point's share of the loss (``train.face_weights``).
+        ``normal_weight`` != 1 (targets with normals, channels 3..5): the part of each point's position
+        error along its target normal, i.e. across the plane the point belongs on, weighs that much
+        against the part along the plane: where the polycube's planes are what the extraction reads,
+        a point slid along its face costs little and one off its plane a thin slab.
 
         Returns ``(loss, stats)`` where ``stats`` holds the float values of the L2 and L1
         terms and the weight used.
@@ -224,6 +229,11 @@ class Diffusion:
         else:
             target = noise
         err = out.float() - target.float()
+        if normal_weight != 1.0 and x0.shape[-1] >= 6:
+            n = x0[..., 3:6].float()
+            n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+            across = (err[..., :3] * n).sum(-1, keepdim=True) * n  # the error's component across the plane
+            err = torch.cat([err[..., :3] + (normal_weight ** 0.5 - 1.0) * across, err[..., 3:]], dim=-1)
         if point_weight is not None:  # a weight w on a point's squared error, sqrt(w) on its error
             err = err * point_weight.float().sqrt().unsqueeze(-1)
         if self.min_snr is not None:
