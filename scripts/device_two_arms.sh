@@ -25,6 +25,6 @@ while true; do
   if grep -q "training done" $D/w512.out && grep -q "training done" $D/w2048.out; then break; fi
   [ $el -gt ${DEADLINE:-505} ] && { echo "deadline"; break; }
 done
-for a in w512 w2048; do mkdir -p $OUT/$a; cp $D/$a.out $D/main.out 2>/dev/null; RUNDIR=$D/$a bash scripts/device_train.sh export $OUT/$a; cp $D/$a.out $OUT/$a/main.out; done
+for a in w512 w2048; do mkdir -p $OUT/$a; RUNDIR=$D/$a bash scripts/device_train.sh export $OUT/$a; cp $D/$a.out $OUT/$a/main.out; done
 read -r S1 S2 <<< "$SEEDS"; tail -n 3 $D/g$S1.out $D/g$S2.out; ls -la $OUT/*
 echo "total $(( $(date +%s) - T0 )) s"
