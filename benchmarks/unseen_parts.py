@@ -20,6 +20,7 @@ beside the same measure on the 10 example parts; writes the JSON.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import tempfile
 import time
@@ -118,20 +119,24 @@ def make_parts(folder: Path, count: int, seed: int, family: str = "blocks") -> l
     return out
 
 
-def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int = 0) -> dict:
+def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int = 0,
+                 learned_maps: tuple[str, ...] | None = None) -> dict:
     """Mesh through the learned source only (``--polycube learned``: the first draw at ``steps``,
     then the model's further draws, ``polycubenet.policy.LEARNED_DRAWS``; no classical fallback), as
     ``mesh_part`` does: name -> (valid, faithful and at least the quality bar ``min_sj``, SJ min,
     which draw was kept: 1, 2, ... or None, seconds, the mesh's distance to the part (Hausdorff /
     diagonal), why the first draw was left, the map that made the kept mesh: ``registration`` or
     ``exact (realised)``, :func:`polycubenet.pipeline.pull_back_learned`).  ``draw_seed``: the model's noise
-    seed (``ModelSource(seed=...)``; 0 as the pipeline runs it), to see what other draws would give."""
+    seed (``ModelSource(seed=...)``; 0 as the pipeline runs it), to see what other draws would give.
+    ``learned_maps``: ``PipelineConfig.learned_maps`` (None: the default, the registration alone)."""
     from polycubenet.inference import ModelSource
     from polycubenet.pipeline import PipelineConfig, mesh_part
     from polycubenet.policy import faithful, refinement
 
     res = {}
     cfg = PipelineConfig(polycube="learned", target_hexes=3000)
+    if learned_maps:
+        cfg = dataclasses.replace(cfg, learned_maps=tuple(learned_maps))
     for p in paths:
         t0 = time.perf_counter()
         try:
@@ -167,6 +172,9 @@ def main(argv=None) -> int:
     ap.add_argument("--mesh", action="store_true", help="also mesh every part and example through the learned source alone (every draw)")
     ap.add_argument("--draw-seed", type=int, default=0,
                     help="the model's noise seed for --mesh (0: as the pipeline draws; others: what further draws give)")
+    ap.add_argument("--learned-maps", default=None,
+                    help="with --mesh: the maps a learned polycube is pulled back through, in order, comma-separated "
+                         "(PipelineConfig.learned_maps: registration, anchors; default: the registration alone)")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/unseen_parts.json"))
     ap.add_argument("--make-only", metavar="DIR", help="only write the parts as STEP files into DIR and stop (no model): "
                     "a folder for `polycubenet mesh` or benchmarks/bench_auto_cost.py --parts")
@@ -186,8 +194,9 @@ def main(argv=None) -> int:
     for r, (_, desc) in zip(rows, made):
         r["shape"] = desc
     examples = sorted((ROOT / "examples/parts").glob("*.step"))
-    meshed = mesh_learned([p for p, _ in made], args.checkpoint, args.steps, args.draw_seed) if args.mesh else {}
-    ex_meshed = mesh_learned(examples, args.checkpoint, args.steps, args.draw_seed) if args.mesh else {}
+    maps = tuple(args.learned_maps.split(",")) if args.learned_maps else None
+    meshed = mesh_learned([p for p, _ in made], args.checkpoint, args.steps, args.draw_seed, maps) if args.mesh else {}
+    ex_meshed = mesh_learned(examples, args.checkpoint, args.steps, args.draw_seed, maps) if args.mesh else {}
     ex_rows, _ = part_rows(args.checkpoint, examples, 4096, args.steps)
     print(f"\n{'part':<18} {'genus':>5} {'first draw':<28} {'learned mesh: SJ, Hausdorff':<28} shape")
     for r in rows:
@@ -211,7 +220,7 @@ def main(argv=None) -> int:
               f"({u1} by the first draw, {ur} realised exactly), examples {e}/{len(examples)} ({e1} by the first "
               f"draw, {er} realised exactly)")
     write_json(args.json, {"checkpoint": args.checkpoint, "seed": args.seed, "family": args.family, "count": len(rows), "steps": args.steps,
-                           "draw_seed": args.draw_seed,
+                           "draw_seed": args.draw_seed, "learned_maps": maps,
                            "accepted": acc, "examples_accepted": ex_acc, "examples": len(ex_rows),
                            "meshed_valid": counts(meshed)[1] if meshed else None,
                            "meshed_first_draw": counts(meshed)[0] if meshed else None,

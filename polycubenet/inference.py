@@ -271,4 +271,5 @@ class ModelSource:
             "steps": resolve_steps(self.steps, self.device, loaded)[1],
             "seconds": round(time.perf_counter() - t0, 3),
         }
-        return PolycubeCloud(cloud[:, :3].astype(np.float64), cloud[:, 3:].astype(np.float64), meta=meta)
+        return PolycubeCloud(cloud[:, :3].astype(np.float64), cloud[:, 3:].astype(np.float64), meta=meta,
+                             anchors=None if a is None else a[:, :3].astype(np.float64))

@@ -411,14 +411,17 @@ def polycube_cloud(kind: str, part_path: str | os.PathLike, loaded: str | os.Pat
     return cloud.save(dest)
 
 
-def write_generated(generated: np.ndarray, dest: str | os.PathLike, meta: dict) -> Path:
-    """Save one part's generated cloud ``(M, 6)`` (xyz + normals) as a PolycubeCloud."""
+def write_generated(generated: np.ndarray, dest: str | os.PathLike, meta: dict,
+                    anchors: np.ndarray | None = None) -> Path:
+    """Save one part's generated cloud ``(M, 6)`` (xyz + normals) as a PolycubeCloud, with the part points
+    ``anchors (M, 3)`` it was generated from (an anchored model)."""
     g = np.asarray(generated, dtype=np.float64)
     if g.ndim != 2 or g.shape[1] != 6 or not np.isfinite(g).all():
         raise PolycubeError(f"the model returned an unusable cloud (shape {g.shape}, finite {bool(np.isfinite(g).all())})")
     n = np.linalg.norm(g[:, 3:], axis=1, keepdims=True)
     normals = np.divide(g[:, 3:], n, out=np.zeros_like(g[:, 3:]), where=n > 0)
-    return PolycubeCloud(g[:, :3], normals, meta={"provenance": "learned", **meta}).save(dest)
+    a = None if anchors is None else np.asarray(anchors, dtype=np.float64)[:, :3]
+    return PolycubeCloud(g[:, :3], normals, meta={"provenance": "learned", **meta}, anchors=a).save(dest)
 
 
 def cleanup_extract(cloud_path: str | os.PathLike, loaded: str | os.PathLike, dest: str | os.PathLike,
@@ -436,9 +439,12 @@ def cleanup_extract(cloud_path: str | os.PathLike, loaded: str | os.PathLike, de
 
     cloud = ClassicalCloud.load(cloud_path)  # a plain cloud loads with the classical fields None
     _, _, _, meta = read_loaded(loaded)
-    P, N, _ = remove_outliers(cloud.points, cloud.normals)
+    P, N, keep = remove_outliers(cloud.points, cloud.normals)
     poly = cloud_polycube(cloud, P, N, meta["part"].get("genus"), config, meta["name"])
     exact = _exact_map_arrays(cloud_path)
+    with np.load(cloud_path, allow_pickle=False) as z:  # a generated cloud's anchors (its own map to the part)
+        if "anchors" in z.files:
+            exact["anchors"] = z["anchors"][keep]
     return _save_arrays(dest, {"polycube": poly.meta, "cloud": cloud.meta}, points=P, normals=N,
                         xs=poly.xs, ys=poly.ys, zs=poly.zs, occupancy=poly.occupancy, **exact)
 
@@ -492,7 +498,9 @@ def partition_pullback(extracted: str | os.PathLike, corr: str | os.PathLike, lo
 
     from .pipeline import _pull_back_classical, own_diagonal, partition_polycube, pull_back_learned
 
-    _, _, poly, _ = read_extracted(extracted)
+    P, N, poly, _ = read_extracted(extracted)
+    ext_arrays, _ = _load_arrays(extracted)
+    anchored = (P, N, ext_arrays["anchors"]) if "anchors" in ext_arrays else None
     part, _, T, lmeta = read_loaded(loaded)
     diagonal = own_diagonal(part.vertices, T)
     arrays, _ = _load_arrays(corr)
@@ -500,7 +508,7 @@ def partition_pullback(extracted: str | os.PathLike, corr: str | os.PathLike, lo
         return _pull_back_classical(partition_polycube(poly, config), _surface_map(arrays), part.vertices, part.faces,
                                     config, diagonal).save(dest)
     mesh, _ = pull_back_learned(poly, Correspondence.load(corr), part.vertices, part.faces, config, diagonal,
-                                lmeta.get("name"))
+                                lmeta.get("name"), anchored=anchored)
     return mesh.save(dest)
 
 

@@ -97,6 +97,12 @@ class PipelineConfig:
     min_sj : a valid mesh with a lower minimum scaled Jacobian does not end the chain: the
         next polycube source is tried and the better mesh kept (:mod:`polycubenet.policy`;
         None: any valid mesh ends it)
+    learned_maps : the maps a learned polycube is pulled back through, in order, each only while the mesh
+        before does not end the chain, before it is realised exactly (``realise``): ``"registration"``
+        (rigid + CPD, :func:`polycubenet.registration.align`) and ``"anchors"`` (an anchored model's own
+        correspondences, :mod:`polycubenet.anchormap`).  The default is the registration alone: with the
+        anchors as well, before or after it, the dev sets meshed the same 17 of 32 parts (session 26,
+        MODEL_CARD "The model's own map"), so they are an option, not the default
     """
 
     n_sample: int = 4096
@@ -113,6 +119,7 @@ class PipelineConfig:
     voxel: VoxelConfig = VoxelConfig()
     min_sj: float | None = 0.2
     realise: RealiseConfig | None = RealiseConfig()
+    learned_maps: tuple[str, ...] = ("registration",)
 
 
 #: the values of ``PipelineConfig.polycube`` (and of the command-line ``--polycube``): ``policy.MODES``
@@ -303,8 +310,8 @@ def mesh_surface(
 
         def attempt(label: str, tracker) -> Attempt:
             clock.timings, clock.tracker = tracker.seconds, tracker
-            cloud, P, N, poly = _polycube_stages(chain[label], sample, Vc, F, genus, extraction_config(label, config),
-                                                 name, clock, res)
+            cloud, P, N, A, poly = _polycube_stages(chain[label], sample, Vc, F, genus, extraction_config(label, config),
+                                                    name, clock, res)
             with clock("register"):
                 if hasattr(cloud, "correspondence"):  # classical and voxel polycubes know their map exactly
                     corr = cloud.correspondence()
@@ -319,7 +326,8 @@ def mesh_surface(
                 if hasattr(cloud, "correspondence"):
                     mesh_c = _pull_back_classical(mesh_pc, corr, Vc, F, config, own_diagonal(Vc, T))
                 else:
-                    mesh_c, poly = pull_back_learned(poly, corr, Vc, F, cfg, own_diagonal(Vc, T), name, mesh_pc)
+                    mesh_c, poly = pull_back_learned(poly, corr, Vc, F, cfg, own_diagonal(Vc, T), name, mesh_pc,
+                                                     anchored=None if A is None else (P, N, A))
             return Attempt(label, dict(mesh_c.meta), payload=(cloud, poly, mesh_c), seconds=tracker.seconds,
                            label=source_label(label))
 
@@ -364,11 +372,12 @@ def _polycube_stages(source, sample, Vc, F, genus, config, name, clock, res):
         cloud = source(sample, Vc, F, config)
     res.cloud = cloud
     with clock("cleanup"):
-        P, N, _ = remove_outliers(cloud.points, cloud.normals)
+        P, N, keep = remove_outliers(cloud.points, cloud.normals)
     with clock("extract"):
         poly = cloud_polycube(cloud, P, N, genus, config, name)
     res.polycube = poly
-    return cloud, P, N, poly
+    A = None if getattr(cloud, "anchors", None) is None else np.asarray(cloud.anchors, float)[keep]
+    return cloud, P, N, A, poly
 
 
 def partition_polycube(poly: Polycube, config: PipelineConfig):
@@ -407,7 +416,8 @@ def cloud_polycube(cloud: PolycubeCloud, P: np.ndarray, N: np.ndarray, genus: in
 
 def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, config: PipelineConfig,
                       diagonal: float | None = None, part: str | None = None,
-                      partitioned: HexMesh | None = None) -> tuple[HexMesh, Polycube]:
+                      partitioned: HexMesh | None = None,
+                      anchored: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> tuple[HexMesh, Polycube]:
     """A learned polycube's partition and pull-back (both drivers call this): through the registration's
     map (``corr``); when that mesh would not end the chain (:func:`polycubenet.policy.ends_chain`: not
     valid, off the part or under the bar) and ``config.realise`` is set, also through the polycube
@@ -417,9 +427,17 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
     kept.  ``meta["map"]`` says which map made the mesh (and why not the others).
     ``partitioned``: ``poly``'s partition when the caller made it already."""
     mesh_pc = partition_polycube(poly, config) if partitioned is None else partitioned
-    mesh = pull_back(mesh_pc, corr.map_points, Vc, F, config.pullback, diagonal)
-    mesh.meta["map"] = "registration"
-    if ends_chain(mesh.meta, config.min_sj) or config.realise is None:
+    maps = _learned_maps(poly, corr, anchored, config.learned_maps)
+    best = None
+    for name, to_part in maps:
+        m = pull_back(mesh_pc, to_part, Vc, F, config.pullback, diagonal)
+        m.meta["map"] = name
+        if best is None or mesh_rank(m.meta, config.min_sj) > mesh_rank(best.meta, config.min_sj):
+            best = m
+        if ends_chain(m.meta, config.min_sj):
+            return m, poly
+    mesh = best
+    if config.realise is None:
         return mesh, poly
     best, used, why_not, cache = mesh, poly, [], {}
     for rc in realise_variants(config.realise):
@@ -440,8 +458,35 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
             break
     if best is mesh:
         why = "; ".join(why_not) if why_not else "its mesh ranks above the realised ones"
-        mesh.meta["map"] = f"registration ({why})"
+        mesh.meta["map"] = f"{mesh.meta['map']} ({why})"
     return best, used
+
+
+#: the maps ``PipelineConfig.learned_maps`` may name
+LEARNED_MAPS = ("registration", "anchors")
+
+
+def _learned_maps(poly: Polycube, corr, anchored, names) -> list[tuple[str, Callable]]:
+    """``(name, to_part)`` of the maps ``names`` (``PipelineConfig.learned_maps``) this polycube has:
+    ``anchors`` needs the cleaned cloud's points, normals and anchors (``anchored``; an anchored model's
+    cloud) and at least one point near a face of its direction; the registration is always there."""
+    from .anchormap import anchor_map
+
+    unknown = [n for n in names if n not in LEARNED_MAPS]
+    if unknown or not names:
+        raise ValueError(f"learned_maps must name some of {LEARNED_MAPS}; got {tuple(names)}")
+    out = []
+    for name in names:
+        if name == "registration":
+            out.append((name, corr.map_points))
+        elif anchored is not None:
+            try:
+                out.append((name, anchor_map(poly, *anchored).map_points))
+            except ValueError:
+                continue
+    if not out:  # only the anchors asked for, and the cloud has none: the registration
+        out.append(("registration", corr.map_points))
+    return out
 
 
 def own_diagonal(Vc: np.ndarray, T: Transform) -> float:

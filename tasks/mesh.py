@@ -56,7 +56,8 @@ def generate_batch(loaded: list[str], dests: list[str], n_out: list[int], key: s
         clouds = inference.generate([p[1].points for p in parts], n_out, model=model, steps=steps,
                                     seed=seed, device=device, point_budget=point_budget, anchors=anchors)
         meta = {"checkpoint": None if checkpoint is None else str(checkpoint), "steps": steps, "seed": seed}
-        return [library.write_generated(np.asarray(c), d, meta) for c, d in zip(clouds, dests)]
+        return [library.write_generated(np.asarray(c), d, meta, anchors=None if anchors is None else anchors[i])
+                for i, (c, d) in enumerate(zip(clouds, dests))]
 
     rec = stage_record("polycube", run)
     for d in dests:
