@@ -114,10 +114,12 @@ def snap_to_polycube(poly: Polycube, points: np.ndarray, normals: np.ndarray) ->
 
 
 def _direction(n: np.ndarray) -> np.ndarray:
-    """0..5: +x, -x, +y, -y, +z, -z of each row's dominant component."""
-    ax = np.argmax(np.abs(n), axis=1)
-    neg = n[np.arange(len(n)), ax] < 0
-    return 2 * ax + neg.astype(int)
+    """0..5: +x, -x, +y, -y, +z, -z of each row's dominant component (:func:`polycubenet.structure.axis_labels`
+    with no cone: every normal has one)."""
+    from .structure import axis_labels
+
+    axis, sign = axis_labels(n, cone_deg=90.0)
+    return 2 * axis + (sign < 0).astype(int)
 
 
 def anchor_map(poly: Polycube, points: np.ndarray, normals: np.ndarray, anchors: np.ndarray, *,
