@@ -442,9 +442,8 @@ def cleanup_extract(cloud_path: str | os.PathLike, loaded: str | os.PathLike, de
     P, N, keep = remove_outliers(cloud.points, cloud.normals)
     poly = cloud_polycube(cloud, P, N, meta["part"].get("genus"), config, meta["name"])
     exact = _exact_map_arrays(cloud_path)
-    with np.load(cloud_path, allow_pickle=False) as z:  # a generated cloud's anchors (its own map to the part)
-        if "anchors" in z.files:
-            exact["anchors"] = z["anchors"][keep]
+    if cloud.anchors is not None:  # a generated cloud's anchors (its own map to the part), row by row with P
+        exact["anchors"] = cloud.anchors[keep]
     return _save_arrays(dest, {"polycube": poly.meta, "cloud": cloud.meta}, points=P, normals=N,
                         xs=poly.xs, ys=poly.ys, zs=poly.zs, occupancy=poly.occupancy, **exact)
 

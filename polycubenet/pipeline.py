@@ -418,8 +418,10 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
                       diagonal: float | None = None, part: str | None = None,
                       partitioned: HexMesh | None = None,
                       anchored: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> tuple[HexMesh, Polycube]:
-    """A learned polycube's partition and pull-back (both drivers call this): through the registration's
-    map (``corr``); when that mesh would not end the chain (:func:`polycubenet.policy.ends_chain`: not
+    """A learned polycube's partition and pull-back (both drivers call this): through the maps of
+    ``config.learned_maps`` in turn (the registration's, ``corr``; the model's own, from ``anchored`` = the
+    cleaned cloud's points, normals and anchors) until one mesh ends the chain, the best of them kept; when none
+    does (:func:`polycubenet.policy.ends_chain`: not
     valid, off the part or under the bar) and ``config.realise`` is set, also through the polycube
     realised exactly on the part (:func:`polycubenet.realise.learned_map`: the same structure, the
     classical deformation's exact map), with each labelling of :func:`polycubenet.realise.variants` in turn
