@@ -468,8 +468,12 @@ def _surface_map(arrays: dict):
 
 def read_extracted(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, Polycube, dict]:
     arrays, meta = _load_arrays(path)
-    poly = Polycube(arrays["xs"], arrays["ys"], arrays["zs"], arrays["occupancy"], meta=meta["polycube"])
-    return arrays["points"], arrays["normals"], poly, meta["cloud"]
+    return arrays["points"], arrays["normals"], _extracted_polycube(arrays, meta), meta["cloud"]
+
+
+def _extracted_polycube(arrays: dict, meta: dict) -> Polycube:
+    """The polycube of a :func:`cleanup_extract` file's arrays and meta."""
+    return Polycube(arrays["xs"], arrays["ys"], arrays["zs"], arrays["occupancy"], meta=meta["polycube"])
 
 
 def register(extracted: str | os.PathLike, loaded: str | os.PathLike, dest: str | os.PathLike, config: PipelineConfig) -> Path:
@@ -497,9 +501,9 @@ def partition_pullback(extracted: str | os.PathLike, corr: str | os.PathLike, lo
 
     from .pipeline import _pull_back_classical, own_diagonal, partition_polycube, pull_back_learned
 
-    P, N, poly, _ = read_extracted(extracted)
-    ext_arrays, _ = _load_arrays(extracted)
-    anchored = (P, N, ext_arrays["anchors"]) if "anchors" in ext_arrays else None
+    ext, ext_meta = _load_arrays(extracted)  # one read: the polycube, and the cleaned cloud with its anchors
+    poly = _extracted_polycube(ext, ext_meta)
+    anchored = (ext["points"], ext["normals"], ext["anchors"]) if "anchors" in ext else None
     part, _, T, lmeta = read_loaded(loaded)
     diagonal = own_diagonal(part.vertices, T)
     arrays, _ = _load_arrays(corr)
