@@ -61,12 +61,11 @@ def averaged_draws(checkpoint: str, data: str, count: int, draws: int) -> dict:
     """``python -m polycubenet.evaluate``'s reading with each anchor's point the mean of ``draws`` draws."""
     import numpy as np
 
-    import polycubenet.evaluate as ev
-
-    single = ev.generate
+    from polycubenet.evaluate import evaluate
+    from polycubenet.inference import generate
 
     def mean_of_draws(conds, n, seed=0, **kw):
-        outs = [single(conds, n, seed=seed + 1000 * j, **kw) for j in range(draws)]
+        outs = [generate(conds, n, seed=seed + 1000 * j, **kw) for j in range(draws)]
         res = []
         for i in range(len(conds)):
             a = np.stack([o[i] for o in outs])
@@ -75,11 +74,7 @@ def averaged_draws(checkpoint: str, data: str, count: int, draws: int) -> dict:
             res.append(np.hstack([a[..., :3].mean(0), nrm]).astype(np.float32))
         return res
 
-    ev.generate = mean_of_draws
-    try:
-        out = ev.evaluate(checkpoint, data, count, n_out=4096, steps=1, seed=0, progress=False)
-    finally:
-        ev.generate = single
+    out = evaluate(checkpoint, data, count, n_out=4096, steps=1, seed=0, progress=False, generator=mean_of_draws)
     keep = ("exact_structure_rate", "exact_structure_rate_genus_le2", "exact_by_thinnest_slab", "planes_added",
             "planes_missed", "chamfer_median")
     return {k: out[k] for k in keep} | {"pairs": out["pairs"]}

@@ -160,11 +160,14 @@ def plane_errors(poly, gt, tol: float = 0.02) -> tuple[int, int]:
 
 def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 8192, n_in: int | None = None,
              steps: int | None = 64, seed: int = 0, structure: bool = True, batch: int = 8, device: str | None = None,
-             progress: bool = True, keep_clouds: int = 0, identity: bool = False, recycles: int | None = None) -> dict:
+             progress: bool = True, keep_clouds: int = 0, identity: bool = False, recycles: int | None = None,
+             generator=None) -> dict:
     """Metrics of ``checkpoint`` on the first ``count`` pairs of the held-out shards ``data``.
 
     ``keep_clouds`` > 0 also returns ``clouds``: (condition, generated cloud, ground-truth
-    points + normals) of the first that many pairs, for pictures."""
+    points + normals) of the first that many pairs, for pictures.  ``generator``: a stand-in for
+    :func:`~polycubenet.inference.generate` with its signature (default: it), e.g. a mean of several draws."""
+    gen = generate if generator is None else generator
     loaded = load_model(checkpoint, device)
     items = list(_pairs(data, count))
     if not items:
@@ -195,7 +198,7 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
                 if cfg.anchor_normals:
                     cp = np.hstack([cp, np.asarray(s["cond_normals"][k], np.float32)])
                 anchors.append(cp[np.random.default_rng(k).permutation(len(cp))[:n_gen]])
-        clouds = generate(conds, n_gen, model=loaded, steps=steps, seed=seed + b, device=device, anchors=anchors,
+        clouds = gen(conds, n_gen, model=loaded, steps=steps, seed=seed + b, device=device, anchors=anchors,
                           recycles=recycles)
         t_gen = (time.perf_counter() - tg) / len(chunk)
         for i, ((s, k), cloud, c) in enumerate(zip(chunk, clouds, conds)):
