@@ -17,7 +17,6 @@ on synthetic pairs; this one is read on machined-style parts the model never saw
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import tempfile
 import time
@@ -31,7 +30,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 def _job(args: tuple[str, str, int]) -> tuple[str, str, list]:
     checkpoint, path, steps = args
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
     import torch
 
     torch.set_num_threads(1)
