@@ -46,19 +46,12 @@ def compare(checkpoints: list[str], parts: list[Path], workers: int = 1) -> dict
 
     jobs = [(ck, str(p), int(resolve_steps(None, "cpu", ck)[1])) for ck in checkpoints for p in parts]
     out: dict[str, dict[str, list]] = {ck: {} for ck in checkpoints}
-    done = 0
-    if workers <= 1:
-        results = map(_job, jobs)
-    else:
-        pool = ProcessPoolExecutor(workers)
-        results = pool.map(_job, jobs)
-    for ck, name, row in results:
-        out[ck][name] = row
-        done += 1
-        print(f"[{done}/{len(jobs)}] {Path(ck).name} {name}: {'meshed' if row[0] else 'not meshed'} ({row[3]} s)",
-              flush=True)
-    if workers > 1:
-        pool.shutdown()
+    with ProcessPoolExecutor(max(1, workers)) as pool:
+        results = pool.map(_job, jobs) if workers > 1 else map(_job, jobs)
+        for done, (ck, name, row) in enumerate(results, 1):
+            out[ck][name] = row
+            print(f"[{done}/{len(jobs)}] {Path(ck).name} {name}: {'meshed' if row[0] else 'not meshed'} "
+                  f"({row[3]} s)", flush=True)
     return out
 
 
