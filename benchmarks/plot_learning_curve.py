@@ -2,12 +2,14 @@
 runs made on a lent accelerator: ``scripts/device_train.sh``) -> held-out metrics.
 
     python benchmarks/plot_learning_curve.py [--curve benchmarks/results/learning_curve.jsonl] \\
-        [--out docs/learning_curve.png]
+        [--continue-curve benchmarks/results/learning_curve_continue.jsonl] [--out docs/learning_curve.png]
 
 Reads the points ``scripts/publish_checkpoint.sh`` appends (one per published checkpoint; a point
 without ``cpu_hours`` is session 1's, 1.4 h), prints them as a table and plots the held-out median
 Chamfer (with the identity reference: the part's own samples as the cloud), the genus-match rate for
-pairs of genus <= 2 and the example parts accepted.
+pairs of genus <= 2 and the example parts accepted.  Beside them, the training line of the continue
+file (``benchmarks/continue_curve.py``: every committed version re-measured with today's code, same held-out
+pairs and command, no example parts), which goes on every session whether or not a file is published.
 """
 
 from __future__ import annotations
@@ -24,8 +26,13 @@ SESSION1_CPU_HOURS = 1.4  # recorded in MODEL_CARD.md; that checkpoint predates 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--curve", default=str(ROOT / "benchmarks/results/learning_curve.jsonl"))
+    ap.add_argument("--continue-curve", default=str(ROOT / "benchmarks/results/learning_curve_continue.jsonl"))
     ap.add_argument("--out", default=str(ROOT / "docs/learning_curve.png"))
     args = ap.parse_args(argv)
+    cont_path = Path(args.continue_curve)
+    cont = ([json.loads(line) for line in cont_path.read_text().splitlines() if line.strip()]
+            if cont_path.exists() else [])
+    cont.sort(key=lambda p: (p["cpu_hours"], p["gpu_hours"]))
     pts = [json.loads(line) for line in Path(args.curve).read_text().splitlines() if line.strip()]
     for p in pts:
         p["cpu_hours"] = p.get("cpu_hours") or SESSION1_CPU_HOURS
@@ -42,6 +49,14 @@ def main(argv=None) -> int:
               f"{p.get('chamfer_identity') or float('nan'):>8.4f} {lab if lab is not None else float('nan'):>6.3f} "
               f"{p['exact']:>6.0%} {p['exact_identity'] if p.get('exact_identity') is not None else float('nan'):>8.0%} "
               f"{(p.get('genus_match_genus_le2') or 0):>8.0%} {p['parts_accepted']:>3}/{p['parts']}")
+    if cont:
+        print(f"\ncontinue file (benchmarks/continue_curve.py, {cont[0]['pairs']} held-out pairs, today's code)")
+        print(f"{'CPU-h':>6} {'GPU-h':>5} {'commit':>8} {'Chamfer':>8} {'identity':>8} {'labels':>6} {'exact':>6} {'genus<=2':>8}")
+        for p in cont:
+            lab = p.get("label_accuracy")
+            print(f"{p['cpu_hours']:>6.2f} {p['gpu_hours']:>5.2f} {p['commit'][:8]:>8} {p['chamfer_median']:>8.4f} "
+                  f"{p['chamfer_identity']:>8.4f} {lab if lab is not None else float('nan'):>6.3f} {p['exact']:>6.0%} "
+                  f"{(p.get('genus_match_genus_le2') or 0):>8.0%}")
     import matplotlib
 
     matplotlib.use("Agg")
@@ -54,6 +69,9 @@ def main(argv=None) -> int:
     if any(v is not None for v in ident):
         ax[0].plot([xi for xi, v in zip(x, ident) if v is not None], [v for v in ident if v is not None], "k--",
                    label="identity (part samples)")
+    if cont:
+        ax[0].plot([p["cpu_hours"] for p in cont], [p["chamfer_median"] for p in cont], ".-", color="tab:gray",
+                   label="continue file (not published)")
     ax[0].axhline(0.015, color="g", lw=0.8, label="target 1.5 %")
     ax[0].set_xlabel("cumulative CPU-hours")
     ax[0].set_ylabel("held-out Chamfer (median, diag.)")
@@ -64,13 +82,18 @@ def main(argv=None) -> int:
         ax[1].plot(*zip(*idx), "kx--", label="exact, identity (no model)")
     ax[1].plot(x, [p.get("genus_match_genus_le2") or 0 for p in pts], "s-", label="genus match (genus <= 2)")
     ax[1].plot(x, [p["parts_accepted"] / max(1, p["parts"]) for p in pts], "^-", label="example parts accepted")
+    if cont:
+        cx = [p["cpu_hours"] for p in cont]
+        ax[1].plot(cx, [p["exact"] for p in cont], ".-", color="tab:gray", label="exact, continue file")
+        ax[1].plot(cx, [p.get("genus_match_genus_le2") or 0 for p in cont], ".:", color="tab:gray",
+                   label="genus match, continue file")
     for xi, p in zip(x, pts):  # points with accelerator time behind them (at the CPU-hours they started from)
         if p["gpu_hours"] > 0:
             ax[1].annotate(f"+{p['gpu_hours']:.2f} GPU-h", (xi, p["exact"]), fontsize=6, xytext=(-40, 8),
                            textcoords="offset points")
     ax[1].set_ylim(-0.05, 1.05)
     ax[1].set_xlabel("cumulative CPU-hours")
-    ax[1].legend(fontsize=7)
+    ax[1].legend(fontsize=6, ncol=2, loc="lower right")
     fig.tight_layout()
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=90)

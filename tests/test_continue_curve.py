@@ -1,0 +1,58 @@
+"""benchmarks/continue_curve.py and its line in benchmarks/plot_learning_curve.py."""
+
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+import plot_learning_curve  # noqa: E402
+from continue_curve import point, select  # noqa: E402
+
+
+def _meta(commit, hours):
+    return {"commit": commit, "step": 100, "cpu_hours": hours, "gpu_hours": 0.62}
+
+
+def test_select_keeps_versions_a_gap_apart_and_skips_those_already_measured():
+    metas = [_meta("a", 20.0), _meta("b", 20.3), _meta("c", 20.6), _meta("d", 21.0), _meta("e", 21.2)]
+    assert [m["commit"] for m in select(metas, set(), 0.5)] == ["a", "c", "e"]
+    # a point already in the curve is not measured again but still spaces the next one
+    assert [m["commit"] for m in select(metas, {"a", "c"}, 0.5)] == ["e"]
+    assert [m["commit"] for m in select(metas, set(), 0.0)] == ["a", "b", "c", "d", "e"]
+
+
+def test_point_counts_genus_match_over_the_pairs_of_genus_at_most_two():
+    rows = [
+        {"genus": 0, "genus_match": True, "label_accuracy": 0.99},
+        {"genus": 2, "genus_match": False, "label_accuracy": 0.98},
+        {"genus": 3, "genus_match": False, "label_accuracy": 0.97},
+        {"genus": 1, "genus_match": True, "label_accuracy": 0.96},
+    ]
+    res = {"rows": rows, "steps": 1, "n_out": 4096, "chamfer_median": 0.0066, "chamfer_identity_median": 0.0113,
+           "exact_structure_rate": 0.5}
+    p = point(_meta("f" * 40, 55.31), res)
+    assert p["genus_match_genus_le2"] == 2 / 3  # the genus-3 pair is left out
+    assert p["pairs"] == 4 and p["exact"] == 0.5 and p["cpu_hours"] == 55.31
+    assert abs(p["label_accuracy"] - 0.975) < 1e-9
+
+
+def test_plot_prints_and_draws_the_continue_line(tmp_path, capsys):
+    shipped = {"checkpoint": "polycubenet-cpu.pt", "cpu_hours": 21.0, "gpu_hours": 0.62, "steps": 1,
+               "chamfer_median": 0.0065, "chamfer_identity": 0.0113, "exact": 0.63, "genus_match_genus_le2": 0.98,
+               "parts_accepted": 7, "parts": 10, "anchored": True}
+    cont = [{"commit": c * 40, "checkpoint": "polycubenet-cpu-continue.pt", "step": 1, "cpu_hours": h,
+             "gpu_hours": 0.62, "pairs": 100, "steps": 1, "n_out": 4096, "chamfer_median": 0.0066,
+             "chamfer_identity": 0.0113, "label_accuracy": 0.997, "exact": e, "genus_match_genus_le2": 0.95}
+            for c, h, e in (("b", 55.31, 0.60), ("a", 30.34, 0.62))]
+    (tmp_path / "curve.jsonl").write_text(json.dumps(shipped) + "\n")
+    (tmp_path / "cont.jsonl").write_text("".join(json.dumps(p) + "\n" for p in cont))
+    out = tmp_path / "curve.png"
+    assert plot_learning_curve.main(["--curve", str(tmp_path / "curve.jsonl"), "--continue-curve",
+                                     str(tmp_path / "cont.jsonl"), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    lines = text.split("continue file", 1)[1].splitlines()
+    rows = [ln.split() for ln in lines if ln.strip() and ln.split()[0][0].isdigit()]
+    assert [r[0] for r in rows] == ["30.34", "55.31"]  # sorted by CPU-hours
+    assert rows[1][2] == "bbbbbbbb" and rows[1][6] == "60%"
+    assert out.stat().st_size > 0
