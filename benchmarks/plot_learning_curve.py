@@ -87,8 +87,10 @@ def main(argv=None) -> int:
         ax[1].plot(cx, [p["exact"] for p in cont], ".-", color="tab:gray", label="exact, continue file")
         ax[1].plot(cx, [p.get("genus_match_genus_le2") or 0 for p in cont], ".:", color="tab:gray",
                    label="genus match, continue file")
-    for xi, p in zip(x, pts):  # points with accelerator time behind them (at the CPU-hours they started from)
-        if p["gpu_hours"] > 0:
+    gpu_before = 0.0
+    for xi, p in zip(x, pts):  # where accelerator time was added (at the CPU-hours it started from), once each
+        if p["gpu_hours"] > gpu_before:
+            gpu_before = p["gpu_hours"]
             ax[1].annotate(f"+{p['gpu_hours']:.2f} GPU-h", (xi, p["exact"]), fontsize=6, xytext=(-40, 8),
                            textcoords="offset points")
     ax[1].set_ylim(-0.05, 1.05)
