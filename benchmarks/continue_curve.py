@@ -27,6 +27,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
 CONTINUE = "polycubenet/checkpoints/polycubenet-cpu-continue.pt"
 
 
@@ -69,6 +70,8 @@ def point(meta: dict, result: dict) -> dict:
 def main(argv=None) -> int:
     import torch
 
+    from plot_learning_curve import read_points
+
     from polycubenet.evaluate import evaluate
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -80,7 +83,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     out = Path(args.out)
-    done = {json.loads(line)["commit"] for line in out.read_text().splitlines() if line.strip()} if out.exists() else set()
+    done = {p["commit"] for p in read_points(out)} if out.exists() else set()
     metas = []
     with tempfile.TemporaryDirectory() as tmp:
         for i, rev in enumerate(versions()):

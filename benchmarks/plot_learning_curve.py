@@ -23,17 +23,20 @@ ROOT = Path(__file__).resolve().parents[1]
 SESSION1_CPU_HOURS = 1.4  # recorded in MODEL_CARD.md; that checkpoint predates the cpu_hours field
 
 
+def read_points(path) -> list[dict]:
+    """The points of a curve file, one JSON object a line."""
+    return [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--curve", default=str(ROOT / "benchmarks/results/learning_curve.jsonl"))
     ap.add_argument("--continue-curve", default=str(ROOT / "benchmarks/results/learning_curve_continue.jsonl"))
     ap.add_argument("--out", default=str(ROOT / "docs/learning_curve.png"))
     args = ap.parse_args(argv)
-    cont_path = Path(args.continue_curve)
-    cont = ([json.loads(line) for line in cont_path.read_text().splitlines() if line.strip()]
-            if cont_path.exists() else [])
+    cont = read_points(args.continue_curve) if Path(args.continue_curve).exists() else []
     cont.sort(key=lambda p: (p["cpu_hours"], p["gpu_hours"]))
-    pts = [json.loads(line) for line in Path(args.curve).read_text().splitlines() if line.strip()]
+    pts = read_points(args.curve)
     for p in pts:
         p["cpu_hours"] = p.get("cpu_hours") or SESSION1_CPU_HOURS
         p["gpu_hours"] = p.get("gpu_hours") or 0.0
