@@ -22,7 +22,7 @@ def test_select_keeps_versions_a_gap_apart_and_skips_those_already_measured():
     assert [m["commit"] for m in select(metas, set(), 0.0)] == ["a", "b", "c", "d", "e"]
 
 
-def test_point_counts_genus_match_over_the_pairs_of_genus_at_most_two():
+def test_point_takes_evaluates_summary_fields():
     rows = [
         {"genus": 0, "genus_match": True, "label_accuracy": 0.99},
         {"genus": 2, "genus_match": False, "label_accuracy": 0.98},
@@ -30,9 +30,9 @@ def test_point_counts_genus_match_over_the_pairs_of_genus_at_most_two():
         {"genus": 1, "genus_match": True, "label_accuracy": 0.96},
     ]
     res = {"rows": rows, "steps": 1, "n_out": 4096, "chamfer_median": 0.0066, "chamfer_identity_median": 0.0113,
-           "exact_structure_rate": 0.5}
+           "exact_structure_rate": 0.5, "genus_match_rate_genus_le2": 2 / 3, "label_accuracy_median": 0.975}
     p = point(_meta("f" * 40, 55.31), res)
-    assert p["genus_match_genus_le2"] == 2 / 3  # the genus-3 pair is left out
+    assert p["genus_match_genus_le2"] == 2 / 3  # evaluate's figure over the genus <= 2 pairs
     assert p["pairs"] == 4 and p["exact"] == 0.5 and p["cpu_hours"] == 55.31
     assert abs(p["label_accuracy"] - 0.975) < 1e-9
 
