@@ -14,6 +14,12 @@ model card reports) and sorts every part meshed through the learned source alone
 
 No model is run: it reads what the meshing runs recorded, so it costs nothing and says which stage a change
 should aim at.
+
+Where ``benchmarks/unseen_classical.py`` has meshed the same set through the classical chain
+(``benchmarks/results/unseen_classical_<family><seed>.json``, and ``unseen_classical_examples.json`` for the
+examples), every part is also sorted by what the classical chain gives for it (:func:`classical_class`): the
+flattening meets the bars (the part has a coarse polycube that the learned one can be held to), only a voxel
+polycube does, or nothing does; the second table counts the learned path's meshed parts in each class.
 """
 from __future__ import annotations
 
@@ -50,6 +56,40 @@ def bucket(row: list, min_sj: float, bar: float) -> str:
     return "not valid"  # pragma: no cover - a row the meshing run marked failed for another reason
 
 
+CLASSICAL = ("flattening meets the bars", "only a voxel polycube does", "nothing meets the bars")
+
+
+def classical_class(row: list) -> str:
+    """The class of one ``mesh`` row of ``unseen_classical.py`` (meets the bars, SJ min, kept source, ...)."""
+    ok, _sj, source = row[:3]
+    if not ok:
+        return CLASSICAL[2]
+    return CLASSICAL[0] if source == "classical" else CLASSICAL[1]
+
+
+def classical_rows(family: str, seed, results: Path) -> dict | None:
+    """The classical chain's rows of one set (``unseen_classical.py``'s file for it), or None when not run."""
+    f = results / (f"unseen_classical_{family}{seed}.json" if family != "examples" else "unseen_classical_examples.json")
+    return json.loads(f.read_text())["mesh"] if f.exists() else None
+
+
+def cross_table(learned: dict, classical: dict) -> dict:
+    """``{classical class: [learned path meshed, parts]}`` over the parts both runs have."""
+    out = {c: [0, 0] for c in CLASSICAL}
+    for name, row in learned.items():
+        if name in classical:
+            cell = out[classical_class(classical[name])]
+            cell[0] += bool(row[0])
+            cell[1] += 1
+    return out
+
+
+def either(cross: dict) -> int:
+    """Parts that the learned path or the classical chain meets the bars on (``cross_table``'s counts): every part
+    the classical chain meets them on, and those the learned path alone does."""
+    return cross[CLASSICAL[0]][1] + cross[CLASSICAL[1]][1] + cross[CLASSICAL[2]][0]
+
+
 def main(argv=None) -> int:
     from polycubenet import tol
     from polycubenet.atomic import write_json
@@ -62,6 +102,7 @@ def main(argv=None) -> int:
     files = [Path(f) for f in args.results] or [ROOT / "benchmarks/results" / f for f in DEFAULT]
     min_sj, bar = PipelineConfig().min_sj, tol.HAUSDORFF_REL_MAX
     table, total, ex_total = {}, Counter(), Counter()
+    cross, ex_cross = {c: [0, 0] for c in CLASSICAL}, None
     for f in files:
         d = json.loads(f.read_text())
         if not d.get("mesh"):
@@ -70,8 +111,16 @@ def main(argv=None) -> int:
         c = Counter(bucket(r, min_sj, bar) for r in d["mesh"].values())
         table[f"{d['family']}:{d['seed']}"] = dict(c)
         total.update(c)
+        classical = classical_rows(d["family"], d["seed"], f.parent)
+        if classical is not None:
+            for c, (m, n) in cross_table(d["mesh"], classical).items():
+                cross[c][0] += m
+                cross[c][1] += n
         if not ex_total:  # the examples are the same ten parts in every file: count them once
             ex_total.update(bucket(r, min_sj, bar) for r in d.get("example_mesh", {}).values())
+            ex_classical = classical_rows("examples", None, f.parent)
+            if ex_classical is not None:
+                ex_cross = cross_table(d.get("example_mesh", {}), ex_classical)
     cols = list(table) + ["all", "examples"]
     print(f"{'bucket':<26}" + "".join(f"{c:>11}" for c in cols))
     for b in BUCKETS:
@@ -79,9 +128,20 @@ def main(argv=None) -> int:
         print(f"{b:<26}" + "".join(f"{v:>11d}" for v in cells))
     n, ne = sum(total.values()), sum(ex_total.values())
     print(f"{'parts':<26}" + "".join(f"{sum(table[c].values()):>11d}" for c in table) + f"{n:>11d}{ne:>11d}")
+    if any(n for _, n in cross.values()):
+        print(f"\nlearned path meshed / parts, by what the classical chain gives for the same part "
+              f"(benchmarks/unseen_classical.py):\n{'classical chain':<30}{'never-seen':>12}{'examples':>12}")
+        for c in CLASSICAL:
+            ex = "-" if ex_cross is None else f"{ex_cross[c][0]}/{ex_cross[c][1]}"
+            print(f"{c:<30}{cross[c][0]:>7d}/{cross[c][1]:<4d}{ex:>12}")
+        print(f"{'either path meets the bars':<30}{either(cross):>7d}/{sum(n for _, n in cross.values()):<4d}"
+              f"{'-' if ex_cross is None else f'{either(ex_cross)}/{sum(n for _, n in ex_cross.values())}':>12}")
     write_json(args.json, {"files": [str(f.relative_to(ROOT)) if f.is_relative_to(ROOT) else str(f) for f in files],
                            "min_sj": min_sj, "hausdorff_bar": bar, "sets": table, "all": dict(total),
-                           "examples": dict(ex_total)})
+                           "examples": dict(ex_total),
+                           "by_classical": {c: v for c, v in cross.items() if v[1]} or None,
+                           "either": either(cross) if any(n for _, n in cross.values()) else None,
+                           "examples_by_classical": ex_cross})
     print(f"wrote {args.json}")
     return 0
 

@@ -41,3 +41,22 @@ def test_the_table_counts_sets_and_examples_once(tmp_path, capsys):
     assert res["all"]["meshed"] == 2 and res["all"]["off the part > 3 %"] == 2 and sum(res["all"].values()) == 14
     assert res["examples"] == {"meshed": 1}
     assert res["sets"]["mixed:2"]["rejected at extraction"] == 1
+
+
+def test_learned_misses_are_split_by_what_the_classical_chain_gives(tmp_path, capsys):
+    # rows as unseen_classical.py records them: meets the bars, SJ min, kept source, seconds, Hausdorff / diagonal
+    classical = {"kept": [True, 0.5, "classical", 6.0, 0.0], "no polycube": [True, 0.3, "voxel+1", 30.0, 0.008],
+                 "inverted": [False, 0.1, "voxel+3*", 90.0, 0.02], "off": [True, 0.4, "classical", 6.0, 0.002]}
+    (tmp_path / "unseen_classical_mixed5.json").write_text(json.dumps({"mesh": classical}))
+    (tmp_path / "unseen_classical_examples.json").write_text(json.dumps({"mesh": {"a": classical["kept"]}}))
+    f = tmp_path / "u5.json"
+    f.write_text(json.dumps({"family": "mixed", "seed": 5, "mesh": ROWS, "example_mesh": {"a": ROWS["kept"]}}))
+    out = tmp_path / "losses.json"
+    assert unseen_losses.main([str(f), "--json", str(out)]) == 0
+    res = json.loads(out.read_text())
+    # parts without a classical row ("a little off", "far off", "poor") are left out of the split
+    assert res["by_classical"] == {"flattening meets the bars": [1, 2], "only a voxel polycube does": [0, 1],
+                                   "nothing meets the bars": [0, 1]}
+    assert res["examples_by_classical"]["flattening meets the bars"] == [1, 1]
+    assert res["either"] == 3  # the three the classical chain meets the bars on; the learned path adds none
+    assert "flattening meets the bars" in capsys.readouterr().out
