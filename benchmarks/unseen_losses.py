@@ -2,7 +2,7 @@
 
     python benchmarks/unseen_losses.py [RESULT.json ...] [--json benchmarks/results/unseen_losses.json]
 
-Reads the JSON files ``benchmarks/unseen_parts.py --mesh`` writes (default: the five sets whose figures the
+Reads the JSON files ``benchmarks/unseen_parts.py --mesh`` writes (default: the seven sets whose figures the
 model card reports) and sorts every part meshed through the learned source alone into one bucket:
 
 * ``meshed``: valid, within the Hausdorff bar of the part and at least the quality bar (what the figure counts);
@@ -33,7 +33,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 DEFAULT = ["unseen_parts.json", "unseen_parts_mixed.json", "unseen_parts_mixed31.json",
-           "unseen_parts_mixed53.json", "unseen_parts_mixed71.json"]
+           "unseen_parts_mixed53.json", "unseen_parts_mixed71.json", "unseen_parts_blocks97.json",
+           "unseen_parts_mixed89.json"]
 BUCKETS = ("meshed", "rejected at extraction", "not valid", "off the part <= 1.5 %", "off the part 1.5-3 %",
            "off the part > 3 %", "under the quality bar")
 
@@ -96,7 +97,7 @@ def main(argv=None) -> int:
     from polycubenet.pipeline import PipelineConfig
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("results", nargs="*", help="unseen_parts.py --mesh JSON files (default: the model card's five)")
+    ap.add_argument("results", nargs="*", help="unseen_parts.py --mesh JSON files (default: the model card's seven)")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/unseen_losses.json"))
     args = ap.parse_args(argv)
     files = [Path(f) for f in args.results] or [ROOT / "benchmarks/results" / f for f in DEFAULT]
