@@ -7,10 +7,10 @@
 Builds the same parts as ``benchmarks/unseen_parts.py`` (same ``--count``, ``--seed`` and ``--family`` give the
 same STEP files) and meshes each through the classical chain alone (``--polycube classical``: the surface
 flattening, then the voxel polycubes), as ``mesh_part`` runs it.  A part counts when its mesh is valid, within
-the Hausdorff bar and at least the quality bar, the same test ``unseen_parts.py --mesh`` applies to the learned
-source; the row also says which polycube made the kept mesh: ``classical`` (the flattening: a coarse polycube,
-what the learned polycube is compared with) or ``voxel``, ``voxel+K`` (a grid of cells that follows the part
-without a coarse structure).
+the Hausdorff bar and at least the quality bar: the test ``unseen_parts.meets_bars`` that ``unseen_parts.py
+--mesh`` applies to the learned source.  The row also says which polycube made the kept mesh: ``classical``
+(the flattening: a coarse polycube, what the learned polycube is compared with) or ``voxel``, ``voxel+K`` (a
+grid of cells that follows the part without a coarse structure).
 
 ``benchmarks/unseen_losses.py`` reads these files beside the learned ones and splits the learned misses by what
 the classical chain gives for the same part.
@@ -32,8 +32,9 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 def mesh_classical(paths: list[Path]) -> dict:
     """name -> (meets the bars, SJ min or the exception's name, the source whose mesh was kept, seconds,
     Hausdorff / diagonal); ``--polycube classical`` at the benchmark's 3000 hexes."""
+    from unseen_parts import meets_bars
+
     from polycubenet.pipeline import PipelineConfig, mesh_part
-    from polycubenet.policy import faithful
 
     cfg = PipelineConfig(polycube="classical", target_hexes=3000)
     res = {}
@@ -42,8 +43,7 @@ def mesh_classical(paths: list[Path]) -> dict:
         try:
             r = mesh_part(p, None, cfg)
             q = r.report
-            ok = bool(q is not None and q.valid and faithful(r.mesh.meta)
-                      and (cfg.min_sj is None or (q.sj_min is not None and q.sj_min >= cfg.min_sj)))
+            ok = meets_bars(r, cfg)
             dist = r.row()["hausdorff"]
             res[p.stem] = (ok, None if q is None else q.sj_min, r.source, round(time.perf_counter() - t0, 1),
                            None if dist is None else round(float(dist), 4))

@@ -70,7 +70,8 @@ def classical_class(row: list) -> str:
 
 def classical_rows(family: str, seed, results: Path) -> dict | None:
     """The classical chain's rows of one set (``unseen_classical.py``'s file for it), or None when not run."""
-    f = results / (f"unseen_classical_{family}{seed}.json" if family != "examples" else "unseen_classical_examples.json")
+    name = "examples" if family == "examples" else f"{family}{seed}"
+    f = results / f"unseen_classical_{name}.json"
     return json.loads(f.read_text())["mesh"] if f.exists() else None
 
 

@@ -119,6 +119,16 @@ def make_parts(folder: Path, count: int, seed: int, family: str = "blocks") -> l
     return out
 
 
+def meets_bars(r, cfg) -> bool:
+    """Whether a ``mesh_part`` result counts: its mesh valid, within the Hausdorff bar of the part
+    (:func:`polycubenet.policy.faithful`) and at least the quality bar ``cfg.min_sj``."""
+    from polycubenet.policy import faithful
+
+    q = r.report
+    return bool(q is not None and q.valid and faithful(r.mesh.meta)
+                and (cfg.min_sj is None or (q.sj_min is not None and q.sj_min >= cfg.min_sj)))
+
+
 def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int = 0,
                  learned_maps: tuple[str, ...] | None = None) -> dict:
     """Mesh through the learned source only (``--polycube learned``: the first draw at ``steps``,
@@ -131,7 +141,7 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
     ``learned_maps``: ``PipelineConfig.learned_maps`` (None: the default, the registration alone)."""
     from polycubenet.inference import ModelSource
     from polycubenet.pipeline import PipelineConfig, mesh_part
-    from polycubenet.policy import faithful, refinement
+    from polycubenet.policy import refinement
 
     res = {}
     cfg = PipelineConfig(polycube="learned", target_hexes=3000)
@@ -142,8 +152,7 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
         try:
             r = mesh_part(p, ModelSource(checkpoint, steps=steps, seed=draw_seed, device="cpu"), cfg)
             q = r.report
-            ok = bool(q is not None and q.valid and r.provenance == "learned" and faithful(r.mesh.meta)
-                      and (cfg.min_sj is None or (q.sj_min is not None and q.sj_min >= cfg.min_sj)))
+            ok = r.provenance == "learned" and meets_bars(r, cfg)
             draw = 1 + refinement(r.source)[1] if r.source else None
             dist = r.row()["hausdorff"]
             res[p.stem] = (ok, None if q is None else q.sj_min, draw if ok else None,
