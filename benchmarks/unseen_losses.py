@@ -115,9 +115,9 @@ def main(argv=None) -> int:
         total.update(c)
         classical = classical_rows(d["family"], d["seed"], f.parent)
         if classical is not None:
-            for c, (m, n) in cross_table(d["mesh"], classical).items():
-                cross[c][0] += m
-                cross[c][1] += n
+            for cls, (m, k) in cross_table(d["mesh"], classical).items():
+                cross[cls][0] += m
+                cross[cls][1] += k
         if not ex_total:  # the examples are the same ten parts in every file: count them once
             ex_total.update(bucket(r, min_sj, bar) for r in d.get("example_mesh", {}).values())
             ex_classical = classical_rows("examples", None, f.parent)
@@ -130,19 +130,20 @@ def main(argv=None) -> int:
         print(f"{b:<26}" + "".join(f"{v:>11d}" for v in cells))
     n, ne = sum(total.values()), sum(ex_total.values())
     print(f"{'parts':<26}" + "".join(f"{sum(table[c].values()):>11d}" for c in table) + f"{n:>11d}{ne:>11d}")
-    if any(n for _, n in cross.values()):
+    compared = sum(k for _, k in cross.values())  # parts with a classical row
+    if compared:
         print(f"\nlearned path meshed / parts, by what the classical chain gives for the same part "
               f"(benchmarks/unseen_classical.py):\n{'classical chain':<30}{'never-seen':>12}{'examples':>12}")
         for c in CLASSICAL:
             ex = "-" if ex_cross is None else f"{ex_cross[c][0]}/{ex_cross[c][1]}"
             print(f"{c:<30}{cross[c][0]:>7d}/{cross[c][1]:<4d}{ex:>12}")
-        print(f"{'either path meets the bars':<30}{either(cross):>7d}/{sum(n for _, n in cross.values()):<4d}"
-              f"{'-' if ex_cross is None else f'{either(ex_cross)}/{sum(n for _, n in ex_cross.values())}':>12}")
+        ex = "-" if ex_cross is None else f"{either(ex_cross)}/{sum(k for _, k in ex_cross.values())}"
+        print(f"{'either path meets the bars':<30}{either(cross):>7d}/{compared:<4d}{ex:>12}")
     write_json(args.json, {"files": [str(f.relative_to(ROOT)) if f.is_relative_to(ROOT) else str(f) for f in files],
                            "min_sj": min_sj, "hausdorff_bar": bar, "sets": table, "all": dict(total),
                            "examples": dict(ex_total),
-                           "by_classical": {c: v for c, v in cross.items() if v[1]} or None,
-                           "either": either(cross) if any(n for _, n in cross.values()) else None,
+                           "by_classical": {cls: v for cls, v in cross.items() if v[1]} or None,
+                           "either": either(cross) if compared else None,
                            "examples_by_classical": ex_cross})
     print(f"wrote {args.json}")
     return 0
