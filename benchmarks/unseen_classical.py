@@ -29,6 +29,13 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
+def result_file(family: str, seed) -> Path:
+    """Where this script writes a set's rows by default (and where ``unseen_losses.py`` looks for them):
+    ``benchmarks/results/unseen_classical_<family><seed>.json``, ``..._examples.json`` for the examples."""
+    name = "examples" if family == "examples" else f"{family}{seed}"
+    return ROOT / "benchmarks/results" / f"unseen_classical_{name}.json"
+
+
 def mesh_classical(paths: list[Path]) -> dict:
     """name -> (meets the bars, SJ min or the exception's name, the source whose mesh was kept, seconds,
     Hausdorff / diagonal); ``--polycube classical`` at the benchmark's 3000 hexes."""
@@ -67,12 +74,13 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None, help="default: benchmarks/results/unseen_classical_<family><seed>.json "
                     "(with --examples: unseen_classical_examples.json)")
     args = ap.parse_args(argv)
+    if args.examples:
+        args.family, args.seed = "examples", None
     name = "examples" if args.examples else f"{args.family}{args.seed}"
-    out = args.json or str(ROOT / f"benchmarks/results/unseen_classical_{name}.json")
+    out = args.json or str(result_file(args.family, args.seed))
     t0 = time.perf_counter()
     if args.examples:
         made = [(p, "example") for p in sorted((ROOT / "examples/parts").glob("*.step"))]
-        args.family, args.seed = "examples", None
     else:
         made = make_parts(Path(tempfile.mkdtemp(prefix="unseen-parts-")), args.count, args.seed, args.family)
     rows = mesh_classical([p for p, _ in made])

@@ -69,9 +69,11 @@ def classical_class(row: list) -> str:
 
 
 def classical_rows(family: str, seed, results: Path) -> dict | None:
-    """The classical chain's rows of one set (``unseen_classical.py``'s file for it), or None when not run."""
-    name = "examples" if family == "examples" else f"{family}{seed}"
-    f = results / f"unseen_classical_{name}.json"
+    """The classical chain's rows of one set (``unseen_classical.py``'s file for it, in the folder ``results``),
+    or None when not run."""
+    from unseen_classical import result_file
+
+    f = results / result_file(family, seed).name
     return json.loads(f.read_text())["mesh"] if f.exists() else None
 
 
