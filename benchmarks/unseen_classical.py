@@ -62,14 +62,14 @@ def mesh_classical(paths: list[Path]) -> dict:
 
 
 def main(argv=None) -> int:
-    from unseen_parts import make_parts
+    from unseen_parts import FAMILIES, make_parts
 
     from polycubenet.atomic import write_json
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--count", type=int, default=16)
     ap.add_argument("--seed", type=int, default=53)
-    ap.add_argument("--family", choices=("blocks", "mixed"), default="mixed")
+    ap.add_argument("--family", choices=FAMILIES, default="mixed")
     ap.add_argument("--examples", action="store_true", help="mesh the 10 example parts (examples/parts) instead")
     ap.add_argument("--json", default=None, help="default: benchmarks/results/unseen_classical_<family><seed>.json "
                     "(with --examples: unseen_classical_examples.json)")

@@ -1,6 +1,6 @@
 """Parts the project has never seen: how often is the learned polycube accepted on them?
 
-    python benchmarks/unseen_parts.py [--count 16] [--seed 7] [--family blocks|mixed] [--mesh] \\
+    python benchmarks/unseen_parts.py [--count 16] [--seed 7] [--family blocks|mixed|machined] [--mesh] \\
         [--json benchmarks/results/unseen_parts.json]
     python benchmarks/unseen_parts.py --count 16 --seed 61 --family mixed --make-only DIR   # the STEP files only
 
@@ -33,9 +33,22 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
+#: the part families: ``mixed`` adds round bosses, a slanted end and a rotation to ``blocks``; its wedge is a
+#: box of the part's height turned about a point inside the end, so the wedge's lifted bottom also cuts a
+#: thin notch under the slanted face: a convex knife edge whose faces' normals are 135-160 degrees apart, on
+#: every slanted end of the five mixed sets (52 of 80 parts).  ``machined`` draws exactly the parts of
+#: ``mixed`` (same random numbers) with the slanted end a plane cut through the whole end, as a saw or mill
+#: leaves it: no notch.
+FAMILIES = ("blocks", "mixed", "machined")
+
+
 def build_part(occ, rng: np.random.Generator, family: str = "blocks") -> str:
     """One random machined-style solid in the current gmsh model; returns a short description.
-    ``mixed`` adds round bosses, slanted cuts and a rotation about a random axis."""
+    ``mixed`` and ``machined`` add round bosses, slanted cuts and a rotation about a random axis
+    (:data:`FAMILIES`)."""
+    if family not in FAMILIES:
+        raise ValueError(f"family must be one of {FAMILIES}; got {family!r}")
+    curved = family in ("mixed", "machined")
     L, W, H = rng.uniform(40, 90), rng.uniform(25, 60), rng.uniform(12, 30)
     base = occ.addBox(0, 0, 0, L, W, H)
     what = [f"block {L:.0f}x{W:.0f}x{H:.0f}"]
@@ -44,7 +57,7 @@ def build_part(occ, rng: np.random.Generator, family: str = "blocks") -> str:
         l, w = rng.uniform(0.25, 0.6) * L, rng.uniform(0.3, 1.0) * W
         x, y = rng.uniform(0, L - l), rng.uniform(0, W - w)
         h = rng.uniform(0.4, 1.2) * H
-        if family == "mixed" and rng.random() < 0.5:
+        if curved and rng.random() < 0.5:
             r = 0.5 * min(l, w)
             tool = occ.addCylinder(x + r, y + r, H - 1e-3, 0, 0, h, r)
             what.append("round boss")
@@ -71,9 +84,12 @@ def build_part(occ, rng: np.random.Generator, family: str = "blocks") -> str:
         w = rng.uniform(0.1, 0.2) * W
         tools.append((3, occ.addBox(-5, rng.uniform(3, W - w - 3), rng.uniform(0.5, 0.8) * H, L + 10, w, 3 * H)))
         what.append("slot")
-    if family == "mixed" and rng.random() < 0.6:  # a slanted cut across one end
+    if curved and rng.random() < 0.6:  # a slanted cut across one end
         a = rng.uniform(20, 45)
-        wedge = occ.addBox(-L, -5, 0, L, W + 10, 3 * H)
+        if family == "mixed":  # the box's bottom, lifted by the turn, notches the part (FAMILIES)
+            wedge = occ.addBox(-L, -5, 0, L, W + 10, 3 * H)
+        else:  # a half-space: its only face near the part is the cutting plane
+            wedge = occ.addBox(-4 * L, -5, -10 * H, 4 * L, W + 10, 20 * H)
         occ.rotate([(3, wedge)], 0, 0, H * rng.uniform(0.3, 0.7), 0, 1, 0, -np.radians(a))
         occ.translate([(3, wedge)], rng.uniform(0.1, 0.25) * L, 0, 0)
         tools.append((3, wedge))
@@ -81,7 +97,7 @@ def build_part(occ, rng: np.random.Generator, family: str = "blocks") -> str:
     if tools:
         solid, _ = occ.cut(solid, tools)
     occ.synchronize()
-    if family == "mixed":
+    if curved:
         axis = rng.normal(size=3)
         occ.rotate(occ.getEntities(3), 0, 0, 0, *axis, rng.uniform(0, np.pi))
         occ.synchronize()
@@ -90,6 +106,20 @@ def build_part(occ, rng: np.random.Generator, family: str = "blocks") -> str:
     if len(vols) != 1:
         raise RuntimeError(f"{len(vols)} volumes")
     return ", ".join(what)
+
+
+def knife_edge_deg(path: Path) -> float:
+    """The sharpest convex edge of a part: the largest angle (degrees) between the normals of two
+    triangles that meet on a convex edge, 90 on a box; above 135 a knife edge whose faces meet at
+    less than 45 degrees (:data:`FAMILIES`)."""
+    import trimesh
+
+    from polycubenet.io import load_part
+
+    p = load_part(path)
+    m = trimesh.Trimesh(p.vertices, p.faces, process=False)
+    convex = m.face_adjacency_convex
+    return float(np.degrees(m.face_adjacency_angles[convex]).max()) if convex.any() else 0.0
 
 
 def make_parts(folder: Path, count: int, seed: int, family: str = "blocks") -> list[tuple[Path, str]]:
@@ -172,7 +202,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--count", type=int, default=16)
     ap.add_argument("--seed", type=int, default=7)
-    ap.add_argument("--family", choices=("blocks", "mixed"), default="blocks",
+    ap.add_argument("--family", choices=FAMILIES, default="blocks",
                     help="blocks: axis-aligned steps, bosses, holes, pockets, slots; mixed: also round bosses, "
                          "slanted cuts and a random rotation")
     ap.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT))
@@ -191,7 +221,7 @@ def main(argv=None) -> int:
     if args.make_only:
         Path(args.make_only).mkdir(parents=True, exist_ok=True)
         for p, desc in make_parts(Path(args.make_only), args.count, args.seed, args.family):
-            print(f"{p}  {desc}")
+            print(f"{p}  {desc}  (sharpest convex edge {knife_edge_deg(p):.0f} deg)")
         return 0
     from polycubenet.inference import resolve_steps
 
@@ -200,8 +230,9 @@ def main(argv=None) -> int:
     folder = Path(tempfile.mkdtemp(prefix="unseen-parts-"))
     made = make_parts(folder, args.count, args.seed, args.family)
     rows, _ = part_rows(args.checkpoint, [p for p, _ in made], 4096, args.steps)
-    for r, (_, desc) in zip(rows, made):
+    for r, (p, desc) in zip(rows, made):
         r["shape"] = desc
+        r["knife_edge_deg"] = round(knife_edge_deg(p), 1)
     examples = sorted((ROOT / "examples/parts").glob("*.step"))
     maps = tuple(args.learned_maps.split(",")) if args.learned_maps else None
     meshed = mesh_learned([p for p, _ in made], args.checkpoint, args.steps, args.draw_seed, maps) if args.mesh else {}

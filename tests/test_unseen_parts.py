@@ -1,0 +1,45 @@
+"""benchmarks/unseen_parts.py: the ``machined`` family is the ``mixed`` one without the wedge's notch."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+import unseen_parts  # noqa: E402
+
+
+def _build(tmp_path: Path, family: str, seed=(11, 7)) -> tuple[Path, str]:
+    from polycubenet.io import gmsh_session, quiet_stdout
+
+    path = tmp_path / f"{family}.step"
+    with gmsh_session() as gmsh:
+        gmsh.model.add(family)
+        desc = unseen_parts.build_part(gmsh.model.occ, np.random.default_rng(list(seed)), family)
+        with quiet_stdout():
+            gmsh.write(str(path))
+        gmsh.model.remove()
+    return path, desc
+
+
+def test_machined_slanted_end_is_a_plane_cut_where_mixed_notches_a_knife_edge(tmp_path):
+    # seed (11, 7): a block with a 33-degree slanted end and nothing else (mixed_11_007)
+    mixed, desc_m = _build(tmp_path, "mixed")
+    machined, desc_c = _build(tmp_path, "machined")
+    assert desc_m == desc_c and "slanted end 33 deg" in desc_m
+    assert unseen_parts.knife_edge_deg(mixed) > 135  # the notch under the slanted face: 180 - 33
+    assert unseen_parts.knife_edge_deg(machined) < 125  # the slanted face on the top: 90 + 33
+
+
+def test_a_block_has_no_knife_edge(tmp_path):
+    path, desc = _build(tmp_path, "blocks", seed=(7, 0))
+    assert abs(unseen_parts.knife_edge_deg(path) - 90) < 1, desc
+
+
+def test_an_unknown_family_is_refused():
+    import pytest
+
+    with pytest.raises(ValueError, match="family must be one of"):
+        unseen_parts.build_part(None, np.random.default_rng(0), "round")
