@@ -7,7 +7,9 @@
 Builds ``--count`` new CAD-like parts with gmsh's OpenCASCADE kernel, each from its own seed
 (none of them is in ``examples/parts``, and the seed decides everything: run with another
 ``--seed`` for a fresh set): a base block, then 0-2 blocks fused on it (steps and bosses),
-0-2 through-holes (round or square), 0-1 pockets and sometimes a slot, with random sizes.
+0-2 through-holes (round or square), 0-1 pockets and sometimes a slot, with random sizes;
+``--family mixed`` or ``machined`` also round bosses, a slanted end and a random rotation (:data:`FAMILIES`:
+the mixed family's slanted end carries a knife-edge notch, the machined family's is a plain plane cut).
 For each part it runs the learned source exactly as ``mesh_part`` does (the shipped
 checkpoint, its default steps, 4096 learned points): generate, outlier filter, structure
 extraction with the part's genus; ``--mesh`` also meshes every part (and the examples) through
@@ -35,10 +37,11 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 #: the part families: ``mixed`` adds round bosses, a slanted end and a rotation to ``blocks``; its wedge is a
 #: box of the part's height turned about a point inside the end, so the wedge's lifted bottom also cuts a
-#: thin notch under the slanted face: a convex knife edge whose faces' normals are 135-160 degrees apart, on
-#: every slanted end of the five mixed sets (52 of 80 parts).  ``machined`` draws exactly the parts of
-#: ``mixed`` (same random numbers) with the slanted end a plane cut through the whole end, as a saw or mill
-#: leaves it: no notch.
+#: thin notch under the slanted face: a convex knife edge whose faces' normals are 180 degrees less the
+#: slant apart (over 136; :func:`knife_edge_deg`), on every slanted end of the five mixed sets (52 of 80
+#: parts).  ``machined`` draws exactly the parts of ``mixed`` (same random numbers) with the slanted end a
+#: plane cut through the whole end, as a saw or mill leaves it: no notch (the plane still leaves knife
+#: edges where it crosses a hole, pocket or slot near the end).
 FAMILIES = ("blocks", "mixed", "machined")
 
 
