@@ -38,7 +38,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 #: the part families: ``mixed`` adds round bosses, a slanted end and a rotation to ``blocks``; its wedge is a
 #: box of the part's height turned about a point inside the end, so the wedge's lifted bottom also cuts a
 #: thin notch under the slanted face: a convex knife edge whose faces' normals are 180 degrees less the
-#: slant apart (over 136; :func:`knife_edge_deg`), on every slanted end of the five mixed sets (52 of 80
+#: slant apart (135 or more; :func:`knife_edge_deg`), on every slanted end of the five mixed sets (52 of 80
 #: parts).  ``machined`` draws exactly the parts of ``mixed`` (same random numbers) with the slanted end a
 #: plane cut through the whole end, as a saw or mill leaves it: no notch (the plane still leaves knife
 #: edges where it crosses a hole, pocket or slot near the end).
@@ -207,7 +207,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--family", choices=FAMILIES, default="blocks",
                     help="blocks: axis-aligned steps, bosses, holes, pockets, slots; mixed: also round bosses, "
-                         "slanted cuts and a random rotation")
+                         "slanted cuts (with a knife-edge notch) and a random rotation; machined: the mixed parts "
+                         "with each slanted end a plain plane cut")
     ap.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT))
     ap.add_argument("--steps", type=int, default=None,
                     help="DDIM steps (default: the checkpoint's own default_steps, as mesh_part uses)")
