@@ -61,6 +61,7 @@ def point(meta: dict, result: dict) -> dict:
         "label_accuracy": result.get("label_accuracy_median"),
         "exact": result["exact_structure_rate"],
         "genus_match_genus_le2": result.get("genus_match_rate_genus_le2"),
+        **({"exact_by_feature": result["exact_by_feature"]} if "exact_by_feature" in result else {}),
     }
 
 

@@ -2,7 +2,8 @@
 runs made on a lent accelerator: ``scripts/device_train.sh``) -> held-out metrics.
 
     python benchmarks/plot_learning_curve.py [--curve benchmarks/results/learning_curve.jsonl] \\
-        [--continue-curve benchmarks/results/learning_curve_continue.jsonl] [--out docs/learning_curve.png]
+        [--continue-curve benchmarks/results/learning_curve_continue.jsonl] \\
+        [--features-curve benchmarks/results/learning_curve_features.jsonl] [--out docs/learning_curve.png]
 
 Reads the points ``scripts/publish_checkpoint.sh`` appends (one per published checkpoint; a point
 without ``cpu_hours`` is session 1's, 1.4 h), prints them as a table and plots the held-out median
@@ -10,6 +11,10 @@ Chamfer (with the identity reference: the part's own samples as the cloud), the 
 pairs of genus <= 2 and the example parts accepted.  Beside them, the training line of the continue
 file (``benchmarks/continue_curve.py``: every committed version re-measured with today's code, same held-out
 pairs and command, no example parts), which goes on every session whether or not a file is published.
+A third panel draws the same versions read on held-out pairs with machined features (``continue_curve.py
+--data FEATURES``: ``python -m polycubenet.synth --cad-features --whole-slants``), exact structure per feature
+class (slanted end, chamfer, neither: ``polycubenet.synth.shards.feature_class``), where the plain held-out
+pairs have none of the slanted faces the never-seen parts fail on.
 """
 
 from __future__ import annotations
@@ -32,8 +37,11 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--curve", default=str(ROOT / "benchmarks/results/learning_curve.jsonl"))
     ap.add_argument("--continue-curve", default=str(ROOT / "benchmarks/results/learning_curve_continue.jsonl"))
+    ap.add_argument("--features-curve", default=str(ROOT / "benchmarks/results/learning_curve_features.jsonl"))
     ap.add_argument("--out", default=str(ROOT / "docs/learning_curve.png"))
     args = ap.parse_args(argv)
+    feat = read_points(args.features_curve) if Path(args.features_curve).exists() else []
+    feat.sort(key=lambda p: (p["cpu_hours"], p["gpu_hours"]))
     cont = read_points(args.continue_curve) if Path(args.continue_curve).exists() else []
     cont.sort(key=lambda p: (p["cpu_hours"], p["gpu_hours"]))
     pts = read_points(args.curve)
@@ -60,13 +68,22 @@ def main(argv=None) -> int:
             print(f"{p['cpu_hours']:>6.2f} {p['gpu_hours']:>5.2f} {p['commit'][:8]:>8} {p['chamfer_median']:>8.4f} "
                   f"{p['chamfer_identity']:>8.4f} {lab if lab is not None else float('nan'):>6.3f} {p['exact']:>6.0%} "
                   f"{(p.get('genus_match_genus_le2') or 0):>8.0%}")
+    classes = ("slanted end", "chamfer", "neither")
+    if feat:
+        print(f"\ncontinue file on pairs with machined features ({feat[0]['pairs']} pairs, exact structure)")
+        print(f"{'CPU-h':>6} {'GPU-h':>5} {'commit':>8} {'Chamfer':>8} {'exact':>6}" + "".join(f"{c:>13}" for c in classes))
+        for p in feat:
+            by = p.get("exact_by_feature") or {}
+            cells = "".join(f"{by[c]['exact']:>8.0%} /{by[c]['pairs']:>3}" if c in by else f"{'-':>13}" for c in classes)
+            print(f"{p['cpu_hours']:>6.2f} {p['gpu_hours']:>5.2f} {p['commit'][:8]:>8} {p['chamfer_median']:>8.4f} "
+                  f"{p['exact']:>6.0%}{cells}")
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     x = [p["cpu_hours"] for p in pts]
-    fig, ax = plt.subplots(1, 2, figsize=(9, 3.2))
+    fig, ax = plt.subplots(1, 3 if feat else 2, figsize=(13.5 if feat else 9, 3.2))
     ax[0].plot(x, [p["chamfer_median"] for p in pts], "o-", label="model")
     ident = [p.get("chamfer_identity") for p in pts]
     if any(v is not None for v in ident):
@@ -99,6 +116,17 @@ def main(argv=None) -> int:
     ax[1].set_ylim(-0.05, 1.05)
     ax[1].set_xlabel("cumulative CPU-hours")
     ax[1].legend(fontsize=6, ncol=2, loc="lower right")
+    if feat:
+        fx = [p["cpu_hours"] for p in feat]
+        ax[2].plot(fx, [p["exact"] for p in feat], "o-", color="k", label="all")
+        for c, m in zip(classes, ("s-", "^-", "v-")):
+            ax[2].plot(fx, [(p.get("exact_by_feature") or {}).get(c, {}).get("exact", float("nan")) for p in feat], m,
+                       label=c)
+        ax[2].set_ylim(-0.05, 1.05)
+        ax[2].set_xlabel("cumulative CPU-hours")
+        ax[2].set_ylabel("exact structure, continue file")
+        ax[2].set_title("held-out pairs with machined features", fontsize=8)
+        ax[2].legend(fontsize=6, loc="upper left")
     fig.tight_layout()
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=90)

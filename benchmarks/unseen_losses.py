@@ -20,6 +20,9 @@ Where ``benchmarks/unseen_classical.py`` has meshed the same set through the cla
 examples), every part is also sorted by what the classical chain gives for it (:func:`classical_class`): the
 flattening meets the bars (the part has a coarse polycube that the learned one can be held to), only a voxel
 polycube does, or nothing does; the second table counts the learned path's meshed parts in each class.
+A third table splits the parts by the features their descriptions name (:func:`shape_class`: no slanted end,
+a slanted end, a slanted end and a round through-hole) and counts in each the first draws accepted at
+extraction, the learned path's meshes and the classical chain's.
 """
 from __future__ import annotations
 
@@ -77,6 +80,39 @@ def classical_rows(family: str, seed, results: Path) -> dict | None:
     return json.loads(f.read_text())["mesh"] if f.exists() else None
 
 
+SHAPES = ("no slanted end", "slanted end, no round hole", "slanted end and round hole")
+
+
+def shape_class(desc: str | None) -> str | None:
+    """The class of a never-seen part by the features its description (``unseen_parts.py``'s ``shape``) names:
+    whether it has a slanted end, and with it a round through-hole (the combination the model fails most);
+    None without a description (the examples)."""
+    if not desc:
+        return None
+    feats = [f.strip() for f in desc.split(",")]
+    if not any(f.startswith("slanted end") for f in feats):
+        return SHAPES[0]
+    return SHAPES[2] if "round hole" in feats else SHAPES[1]
+
+
+def shape_table(rows: list[dict], learned: dict, classical: dict | None) -> dict:
+    """``{class: {parts, accepted (first draw, at extraction), meshed (learned path, within the bars),
+    classical (the classical chain meets the bars; None when not run)}}`` over ``unseen_parts.py``'s ``rows``."""
+    out = {}
+    for r in rows:
+        cls = shape_class(r.get("shape"))
+        if cls is None:
+            continue
+        cell = out.setdefault(cls, {"parts": 0, "accepted": 0, "meshed": 0,
+                                    "classical": None if classical is None else 0})
+        cell["parts"] += 1
+        cell["accepted"] += bool(r.get("accepted"))
+        cell["meshed"] += bool(learned.get(r["part"], [False])[0])
+        if classical is not None and r["part"] in classical:
+            cell["classical"] += classical_class(classical[r["part"]]) != CLASSICAL[2]
+    return out
+
+
 def cross_table(learned: dict, classical: dict) -> dict:
     """``{classical class: [learned path meshed, parts]}`` over the parts both runs have."""
     out = {c: [0, 0] for c in CLASSICAL}
@@ -107,6 +143,7 @@ def main(argv=None) -> int:
     min_sj, bar = PipelineConfig().min_sj, tol.HAUSDORFF_REL_MAX
     table, total, ex_total = {}, Counter(), Counter()
     cross, ex_cross = {c: [0, 0] for c in CLASSICAL}, None
+    shapes: dict = {}
     for f in files:
         d = json.loads(f.read_text())
         if not d.get("mesh"):
@@ -120,6 +157,10 @@ def main(argv=None) -> int:
             for cls, (m, k) in cross_table(d["mesh"], classical).items():
                 cross[cls][0] += m
                 cross[cls][1] += k
+        for cls, cell in shape_table(d.get("rows", []), d["mesh"], classical).items():
+            acc = shapes.setdefault(cls, {"parts": 0, "accepted": 0, "meshed": 0, "classical": 0})
+            for k, v in cell.items():
+                acc[k] = None if v is None or acc[k] is None else acc[k] + v
         if not ex_total:  # the examples are the same ten parts in every file: count them once
             ex_total.update(bucket(r, min_sj, bar) for r in d.get("example_mesh", {}).values())
             ex_classical = classical_rows("examples", None, f.parent)
@@ -141,12 +182,21 @@ def main(argv=None) -> int:
             print(f"{c:<30}{cross[c][0]:>7d}/{cross[c][1]:<4d}{ex:>12}")
         ex = "-" if ex_cross is None else f"{either(ex_cross)}/{sum(k for _, k in ex_cross.values())}"
         print(f"{'either path meets the bars':<30}{either(cross):>7d}/{compared:<4d}{ex:>12}")
+    if shapes:
+        print(f"\nby the part's features (unseen_parts.py's shape descriptions):\n{'features':<30}{'parts':>6}"
+              f"{'accepted':>10}{'meshed':>8}{'classical':>10}")
+        for cls in SHAPES:
+            if cls in shapes:
+                c = shapes[cls]
+                cl = "-" if c["classical"] is None else c["classical"]
+                print(f"{cls:<30}{c['parts']:>6}{c['accepted']:>10}{c['meshed']:>8}{cl:>10}")
     write_json(args.json, {"files": [str(f.relative_to(ROOT)) if f.is_relative_to(ROOT) else str(f) for f in files],
                            "min_sj": min_sj, "hausdorff_bar": bar, "sets": table, "all": dict(total),
                            "examples": dict(ex_total),
                            "by_classical": {cls: v for cls, v in cross.items() if v[1]} or None,
                            "either": either(cross) if compared else None,
-                           "examples_by_classical": ex_cross})
+                           "examples_by_classical": ex_cross,
+                           "by_shape": {cls: shapes[cls] for cls in SHAPES if cls in shapes} or None})
     print(f"wrote {args.json}")
     return 0
 

@@ -118,6 +118,20 @@ def by_thinnest_slab(rows: list[dict], bins: tuple[float, ...] = SLAB_BINS) -> d
     return out
 
 
+def by_feature(rows: list[dict]) -> dict:
+    """Pairs, exact structure and extraction accepted per machined feature class (the rows' ``feature``,
+    :func:`polycubenet.synth.shards.feature_class`), classes with no pair left out."""
+    from .synth.shards import FEATURE_CLASSES
+
+    out = {}
+    for name in FEATURE_CLASSES:
+        sel = [r for r in rows if r.get("feature") == name]
+        if sel:
+            out[name] = {"pairs": len(sel), "exact": float(np.mean([r["exact"] for r in sel])),
+                         "extracted": float(np.mean([r["error"] is None for r in sel]))}
+    return out
+
+
 def _pairs(directory: str | Path, count: int):
     n = 0
     for path in list_shards(directory):
@@ -205,7 +219,7 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
             truth = np.asarray(s["target_points"][k], float)
             if len(rows) < keep_clouds:
                 kept.append((c, cloud, np.hstack([truth, np.asarray(s["target_normals"][k], float)])))
-            row = {"seed": int(s["seeds"][k]), "genus": int(s["genus"][k]),
+            row = {"seed": int(s["seeds"][k]), "genus": int(s["genus"][k]), "feature": s.feature(k),
                    "chamfer": chamfer(cloud[:, :3].astype(float), truth), "gen_seconds": round(t_gen, 3),
                    # the trivial reference: the part's own samples taken as the polycube cloud
                    "chamfer_identity": chamfer(np.asarray(c, float), truth)}
@@ -264,6 +278,8 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
             out["exact_structure_rate_identity"] = float(np.mean([r["exact_identity"] for r in rows]))
             out["same_cells_rate_identity"] = float(np.mean([r["plane_offset_identity"] is not None for r in rows]))
         out["exact_by_thinnest_slab"] = by_thinnest_slab(rows)
+        if any(r.get("feature") for r in rows):
+            out["exact_by_feature"] = by_feature(rows)
         # over the extracted clouds: planes with no ground-truth plane within 0.02, and the reverse
         out["planes_added"] = int(sum(r["planes_added"] for r in rows if r["planes_added"] is not None))
         out["planes_missed"] = int(sum(r["planes_missed"] for r in rows if r["planes_missed"] is not None))

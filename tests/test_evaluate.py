@@ -69,3 +69,36 @@ def test_evaluate_reads_the_clouds_of_the_generator_it_is_given(tmp_path):
     drawn = evaluate(ck, data, **common)
     assert [r["chamfer"] for r in own["rows"]] == [r["chamfer_identity"] for r in own["rows"]]
     assert [r["chamfer"] for r in drawn["rows"]] != [r["chamfer_identity"] for r in drawn["rows"]]
+
+
+def test_feature_class_reads_the_recorded_deformation(tmp_path):
+    """A shard's pairs are classed by the cuts their recorded deformation makes: a whole slanted end before a
+    chamfered edge before neither; pairs written with ``whole_slants`` include slanted ends, plain ones none."""
+    from polycubenet.synth.shards import feature_class, list_shards, load_shard, write_dataset
+
+    assert feature_class(None) is None
+    assert feature_class({"maps": [{"kind": "round_edge", "style": "fillet"}]}) == "neither"
+    assert feature_class({"maps": [{"kind": "round_edge", "style": "chamfer"}, {"kind": "twist"}]}) == "chamfer"
+    assert feature_class({"maps": [{"kind": "round_edge", "style": "chamfer"}, {"kind": "slant_end"}]}) == "slanted end"
+    slants, plain = tmp_path / "slants", tmp_path / "plain"
+    write_dataset(slants, count=8, seed=6, per_shard=8, n_cond=64, n_target=64, cad_features=True,
+                  whole_slants=True, progress=False)
+    write_dataset(plain, count=8, seed=6, per_shard=8, n_cond=64, n_target=64, progress=False)
+    s, p = load_shard(list_shards(slants)[0]), load_shard(list_shards(plain)[0])
+    got = [s.feature(k) for k in range(len(s))]
+    assert "slanted end" in got and all(g in ("slanted end", "chamfer", "neither") for g in got)
+    assert all(p.feature(k) != "slanted end" for k in range(len(p)))
+    for k in range(len(s)):  # the class follows the pair's own maps
+        kinds = [m["kind"] for m in s.meta["pairs"][k]["deformation"]["maps"]]
+        assert (s.feature(k) == "slanted end") == ("slant_end" in kinds)
+
+
+def test_by_feature_counts_exact_and_extracted_per_class():
+    from polycubenet.evaluate import by_feature
+
+    rows = [{"feature": "slanted end", "exact": False, "error": "x"}, {"feature": "slanted end", "exact": True, "error": None},
+            {"feature": "neither", "exact": False, "error": None}, {"feature": None, "exact": True, "error": None}]
+    b = by_feature(rows)
+    assert list(b) == ["slanted end", "neither"]  # no chamfer pair: left out; a row without a class: in none
+    assert b["slanted end"] == {"pairs": 2, "exact": 0.5, "extracted": 0.5}
+    assert b["neither"] == {"pairs": 1, "exact": 0.0, "extracted": 1.0}

@@ -60,3 +60,27 @@ def test_learned_misses_are_split_by_what_the_classical_chain_gives(tmp_path, ca
     assert res["examples_by_classical"]["flattening meets the bars"] == [1, 1]
     assert res["either"] == 3  # the three the classical chain meets the bars on; the learned path adds none
     assert "flattening meets the bars" in capsys.readouterr().out
+
+
+def test_parts_are_split_by_the_features_their_descriptions_name(tmp_path, capsys):
+    assert unseen_losses.shape_class(None) is None  # an example part: no description
+    assert unseen_losses.shape_class("block 50x43x19, rotated") == "no slanted end"
+    assert unseen_losses.shape_class("block 70x44x17, round boss, slanted end 39 deg, rotated") == \
+        "slanted end, no round hole"
+    assert unseen_losses.shape_class("block 56x33x15, round hole, square hole, slanted end 21 deg") == \
+        "slanted end and round hole"
+    rows = [{"part": "kept", "accepted": True, "shape": "block, pocket, rotated"},
+            {"part": "no polycube", "accepted": False, "shape": "block, round hole, slanted end 30 deg"},
+            {"part": "off", "accepted": True, "shape": "block, slanted end 40 deg, rotated"},
+            {"part": "poor", "accepted": True, "shape": "block, round hole, slanted end 25 deg"}]
+    classical = {"kept": [True, 0.5, "classical", 6.0, 0.0], "no polycube": [False, 0.1, "voxel", 30.0, 0.02],
+                 "off": [True, 0.4, "voxel+1", 6.0, 0.002]}  # "poor": no classical row
+    (tmp_path / "unseen_classical_machined5.json").write_text(json.dumps({"mesh": classical}))
+    f = tmp_path / "u5.json"
+    f.write_text(json.dumps({"family": "machined", "seed": 5, "mesh": ROWS, "rows": rows, "example_mesh": {}}))
+    out = tmp_path / "losses.json"
+    assert unseen_losses.main([str(f), "--json", str(out)]) == 0
+    by = json.loads(out.read_text())["by_shape"]
+    assert by == {"no slanted end": {"parts": 1, "accepted": 1, "meshed": 1, "classical": 1},
+                  "slanted end, no round hole": {"parts": 1, "accepted": 1, "meshed": 0, "classical": 1},
+                  "slanted end and round hole": {"parts": 2, "accepted": 1, "meshed": 0, "classical": 0}}

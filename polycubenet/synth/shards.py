@@ -227,11 +227,37 @@ class Shard:
         for k in range(len(self)):
             yield self.pair(k)
 
+    def feature(self, k: int) -> str | None:
+        """The machined feature of pair ``k`` a polycube finds hardest to follow, from its recorded
+        deformation (:func:`feature_class`); None when the shard records none."""
+        pairs = self.meta.get("pairs") or []
+        return feature_class(pairs[k].get("deformation")) if k < len(pairs) else None
+
     def regenerate(self, k: int) -> SynthPair:
         """Rebuild the full pair ``k`` (meshes, map, float64 samples) from its seed."""
         # a shard written before a parameter existed has that parameter's default
         params = ShardParams(**{**dataclasses.asdict(ShardParams()), **self.meta["params"]})
         return _generate(int(self.arrays["seeds"][k]), params)
+
+
+#: the classes of :func:`feature_class`, hardest first
+FEATURE_CLASSES = ("slanted end", "chamfer", "neither")
+
+
+def feature_class(deformation: dict | None) -> str | None:
+    """``"slanted end"`` when a pair's deformation (its recorded ``DeformationMap`` dict) cuts a whole end by a
+    slanted plane (``slant_end``, ``--whole-slants``), else ``"chamfer"`` when it cuts a convex edge by a plane
+    (``round_edge`` in the chamfer style, 45 degrees or a long slanted one, ``--cad-features``), else
+    ``"neither"``; None without a deformation.  A polycube meets such a face at an axis plane the slant lies
+    between, so these pairs ask the model to commit a slanted face to one side."""
+    if not deformation:
+        return None
+    maps = deformation.get("maps") or []
+    if any(m.get("kind") == "slant_end" for m in maps):
+        return FEATURE_CLASSES[0]
+    if any(m.get("kind") == "round_edge" and m.get("style") == "chamfer" for m in maps):
+        return FEATURE_CLASSES[1]
+    return FEATURE_CLASSES[2]
 
 
 def load_shard(path: str | Path) -> Shard:
