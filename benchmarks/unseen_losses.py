@@ -1,6 +1,6 @@
 """Where never-seen parts are lost on the learned path: extraction, validity, faithfulness or quality.
 
-    python benchmarks/unseen_losses.py [RESULT.json ...] [--json benchmarks/results/unseen_losses.json]
+    python benchmarks/unseen_losses.py [RESULT.json ...] [--json benchmarks/results/unseen_losses.json] [--extraction-only]
 
 Reads the JSON files ``benchmarks/unseen_parts.py --mesh`` writes (default: the seven sets whose figures the
 model card reports) and sorts every part meshed through the learned source alone into one bucket:
@@ -95,19 +95,21 @@ def shape_class(desc: str | None) -> str | None:
     return SHAPES[2] if "round hole" in feats else SHAPES[1]
 
 
-def shape_table(rows: list[dict], learned: dict, classical: dict | None) -> dict:
-    """``{class: {parts, accepted (first draw, at extraction), meshed (learned path, within the bars),
-    classical (the classical chain meets the bars; None when not run)}}`` over ``unseen_parts.py``'s ``rows``."""
+def shape_table(rows: list[dict], learned: dict | None, classical: dict | None) -> dict:
+    """``{class: {parts, accepted (first draw, at extraction), meshed (learned path, within the bars; None
+    for a run without ``--mesh``), classical (the classical chain meets the bars; None when not run)}}`` over
+    ``unseen_parts.py``'s ``rows``."""
     out = {}
     for r in rows:
         cls = shape_class(r.get("shape"))
         if cls is None:
             continue
-        cell = out.setdefault(cls, {"parts": 0, "accepted": 0, "meshed": 0,
+        cell = out.setdefault(cls, {"parts": 0, "accepted": 0, "meshed": None if learned is None else 0,
                                     "classical": None if classical is None else 0})
         cell["parts"] += 1
         cell["accepted"] += bool(r.get("accepted"))
-        cell["meshed"] += bool(learned.get(r["part"], [False])[0])
+        if learned is not None:
+            cell["meshed"] += bool(learned.get(r["part"], [False])[0])
         if classical is not None and r["part"] in classical:
             cell["classical"] += classical_class(classical[r["part"]]) != CLASSICAL[2]
     return out
@@ -138,6 +140,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("results", nargs="*", help="unseen_parts.py --mesh JSON files (default: the model card's seven)")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/unseen_losses.json"))
+    ap.add_argument("--extraction-only", action="store_true",
+                    help="read runs made without --mesh: only the first draws accepted at extraction, by the "
+                         "part's features (the third table)")
     args = ap.parse_args(argv)
     files = [Path(f) for f in args.results] or [ROOT / "benchmarks/results" / f for f in DEFAULT]
     min_sj, bar = PipelineConfig().min_sj, tol.HAUSDORFF_REL_MAX
@@ -146,6 +151,12 @@ def main(argv=None) -> int:
     shapes: dict = {}
     for f in files:
         d = json.loads(f.read_text())
+        if args.extraction_only:
+            for cls, cell in shape_table(d.get("rows", []), None, None).items():
+                acc = shapes.setdefault(cls, {"parts": 0, "accepted": 0, "meshed": None, "classical": None})
+                acc["parts"] += cell["parts"]
+                acc["accepted"] += cell["accepted"]
+            continue
         if not d.get("mesh"):
             print(f"{f}: no meshing rows (run unseen_parts.py with --mesh)", file=sys.stderr)
             return 2
@@ -166,6 +177,15 @@ def main(argv=None) -> int:
             ex_classical = classical_rows("examples", None, f.parent)
             if ex_classical is not None:
                 ex_cross = cross_table(d.get("example_mesh", {}), ex_classical)
+    if args.extraction_only:
+        print(f"{'features':<30}{'parts':>6}{'accepted':>10}   (first draws, at extraction)")
+        for cls in SHAPES:
+            if cls in shapes:
+                print(f"{cls:<30}{shapes[cls]['parts']:>6}{shapes[cls]['accepted']:>10}")
+        write_json(args.json, {"files": [str(f.relative_to(ROOT)) if f.is_relative_to(ROOT) else str(f) for f in files],
+                               "by_shape": {cls: shapes[cls] for cls in SHAPES if cls in shapes}})
+        print(f"wrote {args.json}")
+        return 0
     cols = list(table) + ["all", "examples"]
     print(f"{'bucket':<26}" + "".join(f"{c:>11}" for c in cols))
     for b in BUCKETS:

@@ -84,3 +84,20 @@ def test_parts_are_split_by_the_features_their_descriptions_name(tmp_path, capsy
     assert by == {"no slanted end": {"parts": 1, "accepted": 1, "meshed": 1, "classical": 1},
                   "slanted end, no round hole": {"parts": 1, "accepted": 1, "meshed": 0, "classical": 1},
                   "slanted end and round hole": {"parts": 2, "accepted": 1, "meshed": 0, "classical": 0}}
+
+
+def test_runs_without_meshes_are_read_at_extraction_only(tmp_path, capsys):
+    rows = [{"part": "a", "accepted": True, "shape": "block, pocket"},
+            {"part": "b", "accepted": False, "shape": "block, round hole, slanted end 30 deg"},
+            {"part": "c", "accepted": True, "shape": "block, round hole, slanted end 30 deg"}]
+    files = []
+    for seed in (1, 2):
+        f = tmp_path / f"u{seed}.json"
+        f.write_text(json.dumps({"family": "machined", "seed": seed, "rows": rows}))  # no "mesh": made without --mesh
+        files.append(str(f))
+    out = tmp_path / "x.json"
+    assert unseen_losses.main(files + ["--json", str(out)]) == 2  # the full tables need the meshing rows
+    assert unseen_losses.main(files + ["--extraction-only", "--json", str(out)]) == 0
+    by = json.loads(out.read_text())["by_shape"]
+    assert by == {"no slanted end": {"parts": 2, "accepted": 2, "meshed": None, "classical": None},
+                  "slanted end and round hole": {"parts": 4, "accepted": 2, "meshed": None, "classical": None}}
