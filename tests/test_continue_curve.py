@@ -37,34 +37,42 @@ def test_point_takes_evaluates_summary_fields():
     assert abs(p["label_accuracy"] - 0.975) < 1e-9
 
 
+#: one point of the shipped file's curve (``learning_curve.jsonl``)
+SHIPPED = {"checkpoint": "polycubenet-cpu.pt", "cpu_hours": 21.0, "gpu_hours": 0.62, "steps": 1,
+           "chamfer_median": 0.0065, "chamfer_identity": 0.0113, "exact": 0.63, "genus_match_genus_le2": 0.98,
+           "parts_accepted": 7, "parts": 10, "anchored": True}
+
+
+def _plot(tmp_path, capsys, cont: list[dict], feat: list[dict]) -> str:
+    """Run the plot on the shipped point and these continue / feature points (an empty list: no file); its
+    printout."""
+    files = {}
+    for name, pts in (("curve", [SHIPPED]), ("cont", cont), ("feat", feat)):
+        files[name] = tmp_path / f"{name}.jsonl"
+        if pts:
+            files[name].write_text("".join(json.dumps(p) + "\n" for p in pts))
+    out = tmp_path / "curve.png"
+    assert plot_learning_curve.main(["--curve", str(files["curve"]), "--continue-curve", str(files["cont"]),
+                                     "--features-curve", str(files["feat"]), "--out", str(out)]) == 0
+    assert out.stat().st_size > 0
+    return capsys.readouterr().out
+
+
 def test_plot_prints_and_draws_the_continue_line(tmp_path, capsys):
-    shipped = {"checkpoint": "polycubenet-cpu.pt", "cpu_hours": 21.0, "gpu_hours": 0.62, "steps": 1,
-               "chamfer_median": 0.0065, "chamfer_identity": 0.0113, "exact": 0.63, "genus_match_genus_le2": 0.98,
-               "parts_accepted": 7, "parts": 10, "anchored": True}
     cont = [{"commit": c * 40, "checkpoint": "polycubenet-cpu-continue.pt", "step": 1, "cpu_hours": h,
              "gpu_hours": 0.62, "pairs": 100, "steps": 1, "n_out": 4096, "chamfer_median": 0.0066,
              "chamfer_identity": 0.0113, "label_accuracy": 0.997, "exact": e, "genus_match_genus_le2": 0.95}
             for c, h, e in (("b", 55.31, 0.60), ("a", 30.34, 0.62))]
-    (tmp_path / "curve.jsonl").write_text(json.dumps(shipped) + "\n")
-    (tmp_path / "cont.jsonl").write_text("".join(json.dumps(p) + "\n" for p in cont))
-    out = tmp_path / "curve.png"
-    assert plot_learning_curve.main(["--curve", str(tmp_path / "curve.jsonl"), "--continue-curve",
-                                     str(tmp_path / "cont.jsonl"), "--features-curve", str(tmp_path / "none.jsonl"),
-                                     "--out", str(out)]) == 0
-    text = capsys.readouterr().out
+    text = _plot(tmp_path, capsys, cont, [])
     lines = text.split("continue file", 1)[1].splitlines()
     rows = [ln.split() for ln in lines if ln.strip() and ln.split()[0][0].isdigit()]
     assert [r[0] for r in rows] == ["30.34", "55.31"]  # sorted by CPU-hours
     assert rows[1][2] == "bbbbbbbb" and rows[1][6] == "60%"
-    assert out.stat().st_size > 0
 
 
 def test_plot_prints_the_features_line_per_class(tmp_path, capsys):
     """The continue file read on pairs with machined features: one row per version, sorted by CPU-hours, the
     exact rate of each feature class beside the overall one; a class with no pair is a dash."""
-    shipped = {"checkpoint": "polycubenet-cpu.pt", "cpu_hours": 21.0, "gpu_hours": 0.62, "steps": 1,
-               "chamfer_median": 0.0065, "chamfer_identity": 0.0113, "exact": 0.63, "genus_match_genus_le2": 0.98,
-               "parts_accepted": 7, "parts": 10, "anchored": True}
     feat = [{"commit": c * 40, "checkpoint": "polycubenet-cpu-continue.pt", "step": 1, "cpu_hours": h,
              "gpu_hours": 0.62, "pairs": 256, "steps": 1, "n_out": 4096, "chamfer_median": 0.009,
              "chamfer_identity": 0.0113, "label_accuracy": 0.98, "exact": e, "genus_match_genus_le2": 0.97,
@@ -72,15 +80,8 @@ def test_plot_prints_the_features_line_per_class(tmp_path, capsys):
             for c, h, e, by in (("d", 58.66, 0.40, {"slanted end": {"pairs": 128, "exact": 0.28, "extracted": 0.9},
                                                     "neither": {"pairs": 33, "exact": 0.64, "extracted": 0.9}}),
                                 ("c", 14.82, 0.30, {"slanted end": {"pairs": 128, "exact": 0.15, "extracted": 0.9}}))]
-    (tmp_path / "curve.jsonl").write_text(json.dumps(shipped) + "\n")
-    (tmp_path / "feat.jsonl").write_text("".join(json.dumps(p) + "\n" for p in feat))
-    out = tmp_path / "curve.png"
-    assert plot_learning_curve.main(["--curve", str(tmp_path / "curve.jsonl"), "--continue-curve",
-                                     str(tmp_path / "none.jsonl"), "--features-curve", str(tmp_path / "feat.jsonl"),
-                                     "--out", str(out)]) == 0
-    text = capsys.readouterr().out.split("machined features", 1)[1]
+    text = _plot(tmp_path, capsys, [], feat).split("machined features", 1)[1]
     rows = [ln.split() for ln in text.splitlines() if ln.strip() and ln.split()[0][0].isdigit()]
     assert [r[0] for r in rows] == ["14.82", "58.66"]
     assert rows[0][5:] == ["15%", "/128", "-", "-"]  # no chamfer, no neither pair at 14.82
     assert rows[1][5:] == ["28%", "/128", "-", "64%", "/", "33"]
-    assert out.stat().st_size > 0
