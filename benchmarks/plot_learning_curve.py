@@ -14,7 +14,7 @@ pairs and command, no example parts), which goes on every session whether or not
 A third panel draws the same versions read on held-out pairs with machined features (``continue_curve.py
 --data FEATURES``: ``python -m polycubenet.synth --cad-features --whole-slants``), exact structure per feature
 class (slanted end, chamfer, neither: ``polycubenet.synth.shards.feature_class``), where the plain held-out
-pairs have none of the slanted faces the never-seen parts fail on.
+pairs have none of the slanted ends the never-seen parts fail on.
 """
 
 from __future__ import annotations

@@ -115,6 +115,14 @@ def shape_table(rows: list[dict], learned: dict | None, classical: dict | None) 
     return out
 
 
+def add_shapes(total: dict, table: dict) -> None:
+    """Add one set's :func:`shape_table` into ``total`` (a count that is None in either stays None)."""
+    for cls, cell in table.items():
+        acc = total.setdefault(cls, {"parts": 0, "accepted": 0, "meshed": 0, "classical": 0})
+        for k, v in cell.items():
+            acc[k] = None if v is None or acc[k] is None else acc[k] + v
+
+
 def cross_table(learned: dict, classical: dict) -> dict:
     """``{classical class: [learned path meshed, parts]}`` over the parts both runs have."""
     out = {c: [0, 0] for c in CLASSICAL}
@@ -152,10 +160,7 @@ def main(argv=None) -> int:
     for f in files:
         d = json.loads(f.read_text())
         if args.extraction_only:
-            for cls, cell in shape_table(d.get("rows", []), None, None).items():
-                acc = shapes.setdefault(cls, {"parts": 0, "accepted": 0, "meshed": None, "classical": None})
-                acc["parts"] += cell["parts"]
-                acc["accepted"] += cell["accepted"]
+            add_shapes(shapes, shape_table(d.get("rows", []), None, None))
             continue
         if not d.get("mesh"):
             print(f"{f}: no meshing rows (run unseen_parts.py with --mesh)", file=sys.stderr)
@@ -168,10 +173,7 @@ def main(argv=None) -> int:
             for cls, (m, k) in cross_table(d["mesh"], classical).items():
                 cross[cls][0] += m
                 cross[cls][1] += k
-        for cls, cell in shape_table(d.get("rows", []), d["mesh"], classical).items():
-            acc = shapes.setdefault(cls, {"parts": 0, "accepted": 0, "meshed": 0, "classical": 0})
-            for k, v in cell.items():
-                acc[k] = None if v is None or acc[k] is None else acc[k] + v
+        add_shapes(shapes, shape_table(d.get("rows", []), d["mesh"], classical))
         if not ex_total:  # the examples are the same ten parts in every file: count them once
             ex_total.update(bucket(r, min_sj, bar) for r in d.get("example_mesh", {}).values())
             ex_classical = classical_rows("examples", None, f.parent)
