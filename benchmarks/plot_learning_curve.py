@@ -25,6 +25,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 SESSION1_CPU_HOURS = 1.4  # recorded in MODEL_CARD.md; that checkpoint predates the cpu_hours field
 
 
@@ -68,7 +69,8 @@ def main(argv=None) -> int:
             print(f"{p['cpu_hours']:>6.2f} {p['gpu_hours']:>5.2f} {p['commit'][:8]:>8} {p['chamfer_median']:>8.4f} "
                   f"{p['chamfer_identity']:>8.4f} {lab if lab is not None else float('nan'):>6.3f} {p['exact']:>6.0%} "
                   f"{(p.get('genus_match_genus_le2') or 0):>8.0%}")
-    classes = ("slanted end", "chamfer", "neither")
+    from polycubenet.synth.shards import FEATURE_CLASSES as classes
+
     if feat:
         print(f"\ncontinue file on pairs with machined features ({feat[0]['pairs']} pairs, exact structure)")
         print(f"{'CPU-h':>6} {'GPU-h':>5} {'commit':>8} {'Chamfer':>8} {'exact':>6}" + "".join(f"{c:>13}" for c in classes))
