@@ -44,7 +44,7 @@ mkdir -p "$D/mix" "$R"
 case "${1:?start|export|wait}" in
 start)
   MINUTES=${2:?minutes}
-  nproc; nvidia-smi -L
+  nproc; nvidia-smi -L 2>/dev/null
   # the device image has no open3d: Poisson-disk sampling falls back to polycubenet.sampling.eliminate_samples
   # (the same points, ~5x slower; session 7 ran before it existed, with --sampler uniform)
   SYNTH="$PY -m polycubenet.synth --n-cond 2048 --n-target 2048 --per-shard ${PER_SHARD:-256} --no-progress ${SAMPLER:+--sampler $SAMPLER}"
@@ -58,7 +58,7 @@ start)
   RECIPE=$("$PY" -c "import sys; from polycubenet.train import recipe_flags; print(' '.join(recipe_flags(sys.argv[1])))" "$CKPT")
   echo "recipe: $RECIPE $EXTRA --batch $BATCH --lr $LR --init $INIT"
   $PY -m polycubenet.train --data "$D/mix" --out "$R" --init "$INIT" $RECIPE $EXTRA --batch "$BATCH" ${EVAL:+--eval-data $EVAL} \
-      --lr "$LR" --min-lr-ratio "$MIN_LR_RATIO" --warmup 300 --steps 100000 --fit-steps True --device cuda:0 --seed 8 \
+      --lr "$LR" --min-lr-ratio "$MIN_LR_RATIO" --warmup 300 --steps 100000 --fit-steps True --device "${DEVICE:-cuda:0}" --seed ${TSEED:-8} \
       --reload-every "${RELOAD:-1000}" --ckpt-every 250 --log-every 100 --no-progress --max-minutes "$MINUTES"
   echo "training done"
   ;;
