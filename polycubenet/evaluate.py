@@ -297,6 +297,91 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
     return out
 
 
+#: a part point stands on a slanted face when its normal is more than this many degrees from every axis, and on
+#: a flat one when less than FLAT_DEG; a slanted point counts when its target lies at least MIN_MOVE (of the
+#: canonical frame's diagonal) across its plane from it
+SLANT_DEG, FLAT_DEG, MIN_MOVE = 15.0, 5.0, 0.01
+
+
+def point_moves(anchors: np.ndarray, normals: np.ndarray, cloud: np.ndarray, targets: np.ndarray,
+                target_normals: np.ndarray) -> dict:
+    """How far a generated cloud takes each part point across its target's plane, where the target of output
+    point ``i`` is known (``anchors[i]``, the part point it was made from, is ``targets[i]``'s preimage).
+
+    Across the target's plane (the axis of its normal): ``moved`` is the share of the way from the part point to
+    that plane the output point went (1: onto it, 0: left where it was, 0.75: a ramp a quarter as steep), its
+    median over the slanted points (the part's normal > :data:`SLANT_DEG` from every axis, target at least
+    :data:`MIN_MOVE` away); ``err_slanted`` and ``err_flat`` the median distances left to the plane on slanted
+    and on flat points (normal < :data:`FLAT_DEG` from an axis).  None where a pair has fewer than 5 such points."""
+    idx = np.arange(len(targets))
+    ax = np.abs(target_normals).argmax(axis=1)
+    disp = (targets - anchors)[idx, ax]
+    err = (cloud[:, :3] - targets)[idx, ax]
+    n = normals / np.linalg.norm(normals, axis=1, keepdims=True).clip(1e-12)
+    tilt = np.degrees(np.arccos(np.clip(np.abs(n).max(axis=1), 0.0, 1.0)))
+    slanted = (tilt > SLANT_DEG) & (np.abs(disp) >= MIN_MOVE)
+    flat = tilt < FLAT_DEG
+
+    def med(x, m):
+        return float(np.median(x[m])) if m.sum() >= 5 else None
+
+    return {"slanted_points": int(slanted.sum()), "moved": med(1.0 + err / np.where(slanted, disp, 1.0), slanted),
+            "err_slanted": med(np.abs(err), slanted), "err_flat": med(np.abs(err), flat)}
+
+
+def slant_moves(checkpoint, data: str | Path, count: int = 256, *, seed: int = 0, batch: int = 8,
+                device: str | None = None, generator=None, progress: bool = True) -> dict:
+    """:func:`point_moves` of ``checkpoint``'s one-step clouds on the first ``count`` held-out pairs, summarised
+    per machined feature class (:func:`polycubenet.synth.shards.feature_class`).
+
+    Unlike :func:`evaluate` the anchors are the training's: each target point's preimage on the part with the
+    normal of the nearest condition point, so every output point has a known target and the error of a slanted
+    face can be read as a share of the way (a one-step regressor that is unsure how far a slanted face goes
+    stops short of the plane, and the extraction reads the ramp it leaves as a staircase).  ``generator``: a
+    stand-in for :func:`~polycubenet.inference.generate` (then ``checkpoint`` may be None)."""
+    from .synth.shards import FEATURE_CLASSES
+
+    gen = generate if generator is None else generator
+    loaded = load_model(checkpoint, device) if generator is None or checkpoint is not None else None
+    items = list(_pairs(data, count))
+    if not items:
+        raise FileNotFoundError(f"no held-out pairs in {data}")
+    rows = []
+    for b in range(0, len(items), batch):
+        chunk = items[b : b + batch]
+        conds, anchors, truths = [], [], []
+        for s, k in chunk:
+            cp = np.asarray(s["cond_points"][k], np.float32)
+            pre = np.asarray(s["target_on_shape"][k], np.float32)
+            _, j = cKDTree(cp).query(pre)
+            conds.append(cp)
+            anchors.append(np.hstack([pre, np.asarray(s["cond_normals"][k], np.float32)[j]]))
+            truths.append((np.asarray(s["target_points"][k], float), np.asarray(s["target_normals"][k], float)))
+        clouds = gen(conds, [len(a) for a in anchors], model=loaded, steps=1, seed=seed + b, device=device,
+                     anchors=anchors)
+        for (s, k), a, (tp, tn), cloud in zip(chunk, anchors, truths, clouds):
+            rows.append({"seed": int(s["seeds"][k]), "feature": s.feature(k),
+                         **point_moves(a[:, :3].astype(float), a[:, 3:].astype(float), np.asarray(cloud, float), tp, tn)})
+        if progress:
+            print(f"[slant_moves] {len(rows)}/{len(items)} pairs", flush=True)
+
+    def summary(sel):
+        mv = [r["moved"] for r in sel if r["moved"] is not None]
+        es = [r["err_slanted"] for r in sel if r["err_slanted"] is not None]
+        ef = [r["err_flat"] for r in sel if r["err_flat"] is not None]
+        return {"pairs": len(sel), "pairs_with_slanted_points": len(mv),
+                "moved_median": float(np.median(mv)) if mv else None,
+                "short_rate": float(np.mean(np.array(mv) < 0.9)) if mv else None,  # pairs stopping > 10 % short
+                "err_slanted_median": float(np.median(es)) if es else None,
+                "err_flat_median": float(np.median(ef)) if ef else None}
+
+    classes = [c for c in FEATURE_CLASSES if any(r["feature"] == c for r in rows)]
+    return {"checkpoint": str(loaded.path) if loaded is not None and loaded.path else None,
+            "cpu_hours": loaded.meta.get("cpu_hours") if loaded is not None else None,
+            "data": str(data), "pairs": len(rows), "all": summary(rows),
+            "by_feature": {c: summary([r for r in rows if r["feature"] == c]) for c in classes}, "rows": rows}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m polycubenet.evaluate", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)

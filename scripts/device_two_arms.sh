@@ -22,15 +22,15 @@ DA=/root/pc DB=/root/pc
 [ -n "${B_SEEDS:-}" ] && DB=/root/pcB
 mkdir -p $DA $DB
 env D=$DA INIT=$INIT BATCH=${A_BATCH:-256} LR=$LR MIN_LR_RATIO=${MIN_LR_RATIO:-0.125} SEEDS="$SEEDS" PER_SHARD=64 \
-    WORKERS=${WORKERS:-6} RUNDIR=$DA/$A EXTRA="${A_EXTRA:-$W}" \
+    WORKERS=${WORKERS:-6} RUNDIR=$DA/$A EXTRA="${A_EXTRA-$W}" \
     setsid nohup bash scripts/device_train.sh start $MINUTES > $DA/$A.out 2>&1 &
 if [ -n "${B_SEEDS:-}" ]; then
   env D=$DB INIT=$INIT BATCH=${B_BATCH:-128} LR=$LR MIN_LR_RATIO=${MIN_LR_RATIO:-0.125} SEEDS="$B_SEEDS" PER_SHARD=64 \
       WORKERS=${WORKERS:-6} FLAGS1="${B_FLAGS1:-}" FLAGS2="${B_FLAGS2:---cad-features --whole-slants}" RUNDIR=$DB/$B \
-      EXTRA="${B_EXTRA:-$W --points 2048}" setsid nohup bash scripts/device_train.sh start $MINUTES > $DB/$B.out 2>&1 &
+      EXTRA="${B_EXTRA-$W --points 2048}" setsid nohup bash scripts/device_train.sh start $MINUTES > $DB/$B.out 2>&1 &
 else
   env D=$DB NOGEN=1 INIT=$INIT BATCH=${B_BATCH:-128} LR=$LR MIN_LR_RATIO=${MIN_LR_RATIO:-0.125} RUNDIR=$DB/$B \
-      EXTRA="${B_EXTRA:-$W --points 2048}" setsid nohup bash scripts/device_train.sh start $MINUTES > $DB/$B.out 2>&1 &
+      EXTRA="${B_EXTRA-$W --points 2048}" setsid nohup bash scripts/device_train.sh start $MINUTES > $DB/$B.out 2>&1 &
 fi
 while true; do
   sleep 30; el=$(( $(date +%s) - T0 ))

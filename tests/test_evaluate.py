@@ -102,3 +102,38 @@ def test_by_feature_counts_exact_and_extracted_per_class():
     assert list(b) == ["slanted end", "neither"]  # no chamfer pair: left out; a row without a class: in none
     assert b["slanted end"] == {"pairs": 2, "exact": 0.5, "extracted": 0.5}
     assert b["neither"] == {"pairs": 1, "exact": 0.0, "extracted": 1.0}
+
+
+def test_slant_moves_reads_the_share_of_the_way_a_generator_takes_slanted_faces(tmp_path):
+    """``slant_moves`` scores a generator by how far it takes each part point toward its target's plane: one that
+    leaves the part where it is moves nothing, one that returns the targets moves all the way, one halfway 0.5;
+    the slanted points are there only where the pairs have slanted faces."""
+    from scipy.spatial import cKDTree
+
+    from polycubenet.evaluate import slant_moves
+    from polycubenet.synth.shards import list_shards, load_shard, write_dataset
+
+    data = tmp_path / "slants"
+    write_dataset(data, count=6, seed=6, per_shard=6, n_cond=256, n_target=256, cad_features=True,
+                  whole_slants=True, progress=False)
+    s = load_shard(list_shards(data)[0])
+    pre = np.concatenate([np.asarray(s["target_on_shape"][k], float) for k in range(len(s))])
+    tgt = np.concatenate([np.asarray(s["target_points"][k], float) for k in range(len(s))])
+    tree = cKDTree(pre)
+
+    def toward(share):
+        def gen(conds, n, *, anchors, **kw):
+            out = []
+            for a in anchors:
+                _, j = tree.query(a[:, :3])  # each anchor is a target point's preimage: its own target
+                out.append(np.hstack([a[:, :3] + share * (tgt[j] - a[:, :3]), np.zeros_like(a[:, 3:])]))
+            return out
+        return gen
+
+    got = {share: slant_moves(None, data, 6, generator=toward(share), progress=False) for share in (0.0, 0.5, 1.0)}
+    assert got[1.0]["by_feature"]["slanted end"]["pairs_with_slanted_points"] > 0
+    for share, r in got.items():
+        assert r["all"]["moved_median"] == pytest.approx(share, abs=1e-6)
+    assert got[1.0]["all"]["err_slanted_median"] == pytest.approx(0.0, abs=1e-9)
+    assert got[0.5]["all"]["short_rate"] == 1.0 and got[1.0]["all"]["short_rate"] == 0.0
+    assert got[0.0]["all"]["err_slanted_median"] > 0.01  # left where it was: at least MIN_MOVE from the plane

@@ -1,0 +1,113 @@
+"""How far the model takes a part's slanted faces toward their polycube planes (a share of the way), by feature.
+
+    python benchmarks/slant_moves.py --data FEATURES [--count 256] [--checkpoints F ...] [--names N ...]
+        [--json benchmarks/results/slant_moves.json]
+
+FEATURES: held-out pairs with the training mix's machined features, from a seed never trained on
+(``python -m polycubenet.synth --out FEATURES --count 256 --seed 9001 --n-cond 2048 --n-target 2048
+--cad-features --whole-slants``).  Each checkpoint generates one-step clouds from the training's anchors (each
+target point's preimage, :func:`polycubenet.evaluate.slant_moves`), so every output point has a known target:
+``moved`` 1.00 puts a slanted face onto its plane, 0.75 leaves a ramp a quarter as steep as the part's, which the
+extraction reads as a staircase.  Default checkpoints: the shipped file and the continue file.
+
+With ``--curve OUT.jsonl`` it reads instead every committed version of the continue file at least ``--min-gap``
+CPU-hours apart (as ``benchmarks/continue_curve.py`` does) and appends one line per version not yet in OUT:
+``python benchmarks/slant_moves.py --data FEATURES --curve benchmarks/results/learning_curve_slant_moves.jsonl``.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+DEFAULTS = ["polycubenet/checkpoints/polycubenet-cpu.pt", "polycubenet/checkpoints/polycubenet-cpu-continue.pt"]
+
+
+def main(argv=None) -> int:
+    import torch
+
+    from polycubenet.atomic import write_json
+    from polycubenet.evaluate import slant_moves
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", required=True, help="held-out shard folder with machined features (seed 9001)")
+    ap.add_argument("--count", type=int, default=256)
+    ap.add_argument("--checkpoints", nargs="+", default=DEFAULTS)
+    ap.add_argument("--names", nargs="+", help="one short name per checkpoint (default: file stems)")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--json", help="write every checkpoint's summary and rows here")
+    ap.add_argument("--curve", help="append a line per committed version of the continue file to this .jsonl")
+    ap.add_argument("--min-gap", type=float, default=4.0, help="with --curve: CPU-hours between two versions")
+    args = ap.parse_args(argv)
+    if args.curve:
+        return curve(args)
+    names = args.names or [Path(c).stem for c in args.checkpoints]
+    if len(names) != len(args.checkpoints):
+        ap.error("--names needs one name per checkpoint")
+    torch.set_num_threads(args.threads)
+    results = {}
+    print(f"{'checkpoint':<28} {'CPU-h':>6} {'feature':<12} {'pairs':>5} {'moved':>6} {'short':>6} "
+          f"{'err slanted':>11} {'err flat':>8}")
+    for name, ck in zip(names, args.checkpoints):
+        r = slant_moves(ck, args.data, args.count, progress=False)
+        results[name] = r
+        for cls, v in [*r["by_feature"].items(), ("all", r["all"])]:
+            if v["moved_median"] is None:
+                continue
+            print(f"{name:<28} {r['cpu_hours'] or 0:>6.2f} {cls:<12} {v['pairs_with_slanted_points']:>5} "
+                  f"{v['moved_median']:>6.2f} {v['short_rate']:>6.0%} {v['err_slanted_median']:>11.4f} "
+                  f"{v['err_flat_median']:>8.4f}", flush=True)
+    if args.json:
+        write_json(args.json, {"data": args.data, "count": args.count, "checkpoints": dict(zip(names, args.checkpoints)),
+                               "results": results})
+    return 0
+
+
+def curve(args) -> int:
+    """One line per committed version of the continue file (``--min-gap`` apart) not yet in ``args.curve``."""
+    import json
+    import subprocess
+    import tempfile
+
+    import torch
+
+    from continue_curve import CONTINUE, select, versions
+
+    from polycubenet.evaluate import slant_moves
+
+    torch.set_num_threads(args.threads)
+    out = Path(args.curve)
+    done = {json.loads(line)["commit"] for line in out.read_text().splitlines() if line.strip()} if out.exists() else set()
+    with tempfile.TemporaryDirectory() as tmp:
+        metas = []
+        for i, rev in enumerate(versions()):
+            blob = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:{CONTINUE}"], capture_output=True).stdout
+            if not blob:
+                continue
+            f = Path(tmp) / f"{i:03d}.pt"
+            f.write_bytes(blob)
+            ck = torch.load(f, map_location="cpu", weights_only=False)
+            metas.append({"commit": rev, "file": f, "cpu_hours": float(ck.get("cpu_hours") or 0.0),
+                          "gpu_hours": float(ck.get("gpu_hours") or 0.0)})
+        todo = select(metas, done, args.min_gap)
+        print(f"{len(metas)} versions of {CONTINUE}, {len(done)} already in {out.name}, {len(todo)} to read", flush=True)
+        print(f"{'commit':>8} {'CPU-h':>6} {'moved: slanted end':>18} {'chamfer':>8} {'err slanted':>11}")
+        for m in todo:
+            r = slant_moves(m["file"], args.data, args.count, progress=False)
+            line = {"commit": m["commit"], "cpu_hours": m["cpu_hours"], "gpu_hours": m["gpu_hours"],
+                    "pairs": r["pairs"], "all": r["all"], "by_feature": r["by_feature"]}
+            with out.open("a") as fh:  # one complete line per version
+                fh.write(json.dumps(line) + "\n")
+            bf = r["by_feature"]
+            print(f"{m['commit'][:8]} {m['cpu_hours']:>6.2f} {bf.get('slanted end', {}).get('moved_median') or 0:>18.2f} "
+                  f"{bf.get('chamfer', {}).get('moved_median') or 0:>8.2f} {r['all']['err_slanted_median']:>11.4f}",
+                  flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
