@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from . import tol
 from .atomic import write_json
 from .cleanup import remove_outliers
 from .errors import PolycubeError
@@ -297,10 +298,10 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
     return out
 
 
-#: a part point stands on a slanted face when its normal is more than this many degrees from every axis, and on
-#: a flat one when less than FLAT_DEG; a slanted point counts when its target lies at least MIN_MOVE (of the
-#: canonical frame's diagonal) across its plane from it
-SLANT_DEG, FLAT_DEG, MIN_MOVE = 15.0, 5.0, 0.01
+#: a part point stands on a flat face when its normal is less than FLAT_DEG from an axis (on a slanted one: more
+#: than :data:`polycubenet.tol.SLANT_DEG` from every axis); a slanted point counts when its target lies at least
+#: MIN_MOVE (of the canonical frame's diagonal) across its plane from it
+FLAT_DEG, MIN_MOVE = 5.0, 0.01
 
 
 def point_moves(anchors: np.ndarray, normals: np.ndarray, cloud: np.ndarray, targets: np.ndarray,
@@ -310,7 +311,7 @@ def point_moves(anchors: np.ndarray, normals: np.ndarray, cloud: np.ndarray, tar
 
     Across the target's plane (the axis of its normal): ``moved`` is the share of the way from the part point to
     that plane the output point went (1: onto it, 0: left where it was, 0.75: a ramp a quarter as steep), its
-    median over the slanted points (the part's normal > :data:`SLANT_DEG` from every axis, target at least
+    median over the slanted points (the part's normal > :data:`polycubenet.tol.SLANT_DEG` from every axis, target at least
     :data:`MIN_MOVE` away); ``err_slanted`` and ``err_flat`` the median distances left to the plane on slanted
     and on flat points (normal < :data:`FLAT_DEG` from an axis).  None where a pair has fewer than 5 such points."""
     idx = np.arange(len(targets))
@@ -319,7 +320,7 @@ def point_moves(anchors: np.ndarray, normals: np.ndarray, cloud: np.ndarray, tar
     err = (cloud[:, :3] - targets)[idx, ax]
     n = normals / np.linalg.norm(normals, axis=1, keepdims=True).clip(1e-12)
     tilt = np.degrees(np.arccos(np.clip(np.abs(n).max(axis=1), 0.0, 1.0)))
-    slanted = (tilt > SLANT_DEG) & (np.abs(disp) >= MIN_MOVE)
+    slanted = (tilt > tol.SLANT_DEG) & (np.abs(disp) >= MIN_MOVE)
     flat = tilt < FLAT_DEG
 
     def med(x, m):

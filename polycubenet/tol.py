@@ -50,3 +50,7 @@ ICP_STEP_MIN = 1e-12
 #: and slivers: rockerarm 0.02 %, 11 of 30 synthetic parts up to 0.15 %) they are left as they are
 #: and recorded in the part's repairs -- the hex mesh is checked for validity anyway
 SELF_INTERSECTION_AREA = 1e-2
+#: a part point stands on a slanted face (a slanted end, chamfer or ramp, which a polycube meets at an axis
+#: plane) when its normal is more than this many degrees from every axis: the training's slant weight and the
+#: held-out measure of how far the model takes such faces (``train.slant_weights``, ``evaluate.point_moves``)
+SLANT_DEG = 15.0

@@ -474,3 +474,22 @@ def test_face_weight_trains_and_is_recorded_in_the_recipe(shards, tmp_path):
         flags = recipe_flags(run / "last.pt")
         assert float(flags[flags.index("--face-weight") + 1]) == fw
     assert np.isfinite(losses[0.5]) and losses[0.5] != pytest.approx(losses[0.0], rel=1e-4)
+
+
+def test_slant_weights_weigh_the_points_of_slanted_faces():
+    """A point whose part normal is more than 15 degrees from every axis weighs 1 + gain times a flat one, the
+    batch's mean weight stays 1, and the sign or length of a normal does not matter."""
+    import numpy as np
+    import torch
+
+    from polycubenet.train import slant_weights
+
+    t = np.radians(30.0)
+    normals = [[0, 0, 1], [-1, 0, 0], [np.sin(t), 0, np.cos(t)], [0, -2 * np.cos(np.radians(10)), 2 * np.sin(np.radians(10))]]
+    anchor = torch.tensor([[[0.0, 0.0, 0.0, *n] for n in normals]])
+    w = slant_weights(anchor, 3.0)
+    assert w.shape == (1, 4)
+    assert float(w.mean()) == pytest.approx(1.0)
+    assert float(w[0, 2] / w[0, 0]) == pytest.approx(4.0)  # the 30-degree face
+    assert float(w[0, 3]) == pytest.approx(float(w[0, 1]))  # 10 degrees off an axis: flat
+    assert torch.allclose(slant_weights(anchor, 0.0), torch.ones(1, 4))
