@@ -3,7 +3,8 @@ runs made on a lent accelerator: ``scripts/device_train.sh``) -> held-out metric
 
     python benchmarks/plot_learning_curve.py [--curve benchmarks/results/learning_curve.jsonl] \\
         [--continue-curve benchmarks/results/learning_curve_continue.jsonl] \\
-        [--features-curve benchmarks/results/learning_curve_features.jsonl] [--out docs/learning_curve.png]
+        [--features-curve benchmarks/results/learning_curve_features.jsonl] \\
+        [--slant-curve benchmarks/results/learning_curve_slant_moves.jsonl] [--out docs/learning_curve.png]
 
 Reads the points ``scripts/publish_checkpoint.sh`` appends (one per published checkpoint; a point
 without ``cpu_hours`` is session 1's, 1.4 h), prints them as a table and plots the held-out median
@@ -14,7 +15,9 @@ pairs and command, no example parts), which goes on every session whether or not
 A third panel draws the same versions read on held-out pairs with machined features (``continue_curve.py
 --data FEATURES``: ``python -m polycubenet.synth --cad-features --whole-slants``), exact structure per feature
 class (slanted end, chamfer, neither: ``polycubenet.synth.shards.feature_class``), where the plain held-out
-pairs have none of the slanted ends the never-seen parts fail on.
+pairs have none of the slanted ends the never-seen parts fail on.  On it, dashed, the share of the way the
+model takes the part's slanted faces toward their planes (``benchmarks/slant_moves.py --curve``; 1 puts them
+onto the plane, less leaves a ramp the extraction reads as a staircase).
 """
 
 from __future__ import annotations
@@ -39,8 +42,11 @@ def main(argv=None) -> int:
     ap.add_argument("--curve", default=str(ROOT / "benchmarks/results/learning_curve.jsonl"))
     ap.add_argument("--continue-curve", default=str(ROOT / "benchmarks/results/learning_curve_continue.jsonl"))
     ap.add_argument("--features-curve", default=str(ROOT / "benchmarks/results/learning_curve_features.jsonl"))
+    ap.add_argument("--slant-curve", default=str(ROOT / "benchmarks/results/learning_curve_slant_moves.jsonl"))
     ap.add_argument("--out", default=str(ROOT / "docs/learning_curve.png"))
     args = ap.parse_args(argv)
+    slant = read_points(args.slant_curve) if Path(args.slant_curve).exists() else []
+    slant.sort(key=lambda p: (p["cpu_hours"], p["gpu_hours"]))
     feat = read_points(args.features_curve) if Path(args.features_curve).exists() else []
     feat.sort(key=lambda p: (p["cpu_hours"], p["gpu_hours"]))
     cont = read_points(args.continue_curve) if Path(args.continue_curve).exists() else []
@@ -79,6 +85,15 @@ def main(argv=None) -> int:
             cells = "".join(f"{by[c]['exact']:>8.0%} /{by[c]['pairs']:>3}" if c in by else f"{'-':>13}" for c in classes)
             print(f"{p['cpu_hours']:>6.2f} {p['gpu_hours']:>5.2f} {p['commit'][:8]:>8} {p['chamfer_median']:>8.4f} "
                   f"{p['exact']:>6.0%}{cells}")
+    if slant:
+        print(f"\ncontinue file: share of the way slanted faces are moved ({slant[0]['pairs']} pairs, median per class)")
+        print(f"{'CPU-h':>6} {'GPU-h':>5} {'commit':>8}" + "".join(f"{c:>13}" for c in classes) + f"{'err slanted':>12}")
+        for p in slant:
+            by = p.get("by_feature") or {}
+            cells = "".join(f"{by[c]['moved_median']:>13.2f}" if by.get(c, {}).get("moved_median") is not None
+                            else f"{'-':>13}" for c in classes)
+            print(f"{p['cpu_hours']:>6.2f} {p['gpu_hours']:>5.2f} {p['commit'][:8]:>8}{cells}"
+                  f"{p['all']['err_slanted_median']:>12.4f}")
     import matplotlib
 
     matplotlib.use("Agg")
@@ -124,9 +139,14 @@ def main(argv=None) -> int:
         for c, m in zip(classes, ("s-", "^-", "v-")):
             ax[2].plot(fx, [(p.get("exact_by_feature") or {}).get(c, {}).get("exact", float("nan")) for p in feat], m,
                        label=c)
+        if slant:
+            sx = [p["cpu_hours"] for p in slant]
+            for c, col in (("slanted end", "tab:blue"), ("chamfer", "tab:orange")):
+                ax[2].plot(sx, [(p.get("by_feature") or {}).get(c, {}).get("moved_median") or float("nan") for p in slant],
+                           "--", color=col, label=f"{c}: share of the way moved")
         ax[2].set_ylim(-0.05, 1.05)
         ax[2].set_xlabel("cumulative CPU-hours")
-        ax[2].set_ylabel("exact structure, continue file")
+        ax[2].set_ylabel("exact (solid), moved (dashed)" if slant else "exact structure, continue file")
         ax[2].set_title("held-out pairs with machined features", fontsize=8)
         ax[2].legend(fontsize=6, loc="upper left")
     fig.tight_layout()
