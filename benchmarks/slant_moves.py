@@ -31,7 +31,7 @@ def main(argv=None) -> int:
     import torch
 
     from polycubenet.atomic import write_json
-    from polycubenet.evaluate import slant_moves
+    from polycubenet.evaluate import SHARE_BINS, slant_moves
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True, help="held-out shard folder with machined features (seed 9001)")
@@ -61,6 +61,11 @@ def main(argv=None) -> int:
             print(f"{name:<28} {r['cpu_hours'] or 0:>6.2f} {cls:<12} {v['pairs_with_slanted_points']:>5} "
                   f"{v['moved_median']:>6.2f} {v['short_rate']:>6.0%} {v['err_slanted_median']:>11.4f} "
                   f"{v['err_flat_median']:>8.4f}", flush=True)
+    print(f"\nslanted ends, moved by the point's displacement as a share of the face's largest (0: by the pivot)")
+    print(f"{'checkpoint':<28}" + "".join(f"{b:>9}" for b in SHARE_BINS))
+    for name, r in results.items():
+        v = r["by_feature"].get("slanted end", {}).get("moved_by_share") or {}
+        print(f"{name:<28}" + "".join(f"{v[b]:>9.2f}" if v.get(b) is not None else f"{'-':>9}" for b in SHARE_BINS))
     if args.json:
         write_json(args.json, {"data": args.data, "count": args.count, "checkpoints": dict(zip(names, args.checkpoints)),
                                "results": results})

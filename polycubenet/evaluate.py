@@ -302,6 +302,8 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
 #: than :data:`polycubenet.tol.SLANT_DEG` from every axis); a slanted point counts when its target lies at least
 #: MIN_MOVE (of the canonical frame's diagonal) across its plane from it
 FLAT_DEG, MIN_MOVE = 5.0, 0.01
+#: the bins of ``point_moves``'s ``moved_by_share`` (a slanted point's displacement over the pair's largest)
+SHARE_BINS = ("0-0.2", "0.2-0.4", "0.4-0.6", "0.6-0.8", "0.8-1")
 
 
 def point_moves(anchors: np.ndarray, normals: np.ndarray, cloud: np.ndarray, targets: np.ndarray,
@@ -313,7 +315,8 @@ def point_moves(anchors: np.ndarray, normals: np.ndarray, cloud: np.ndarray, tar
     that plane the output point went (1: onto it, 0: left where it was, 0.75: a ramp a quarter as steep), its
     median over the slanted points (the part's normal > :data:`polycubenet.tol.SLANT_DEG` from every axis, target at least
     :data:`MIN_MOVE` away); ``err_slanted`` and ``err_flat`` the median distances left to the plane on slanted
-    and on flat points (normal < :data:`FLAT_DEG` from an axis).  None where a pair has fewer than 5 such points."""
+    and on flat points (normal < :data:`FLAT_DEG` from an axis); ``moved_by_share`` the median ``moved`` per bin
+    of the displacement's share of the pair's largest (:data:`SHARE_BINS`).  None where fewer than 5 points."""
     idx = np.arange(len(targets))
     ax = np.abs(target_normals).argmax(axis=1)
     disp = (targets - anchors)[idx, ax]
@@ -326,7 +329,14 @@ def point_moves(anchors: np.ndarray, normals: np.ndarray, cloud: np.ndarray, tar
     def med(x, m):
         return float(np.median(x[m])) if m.sum() >= 5 else None
 
-    return {"slanted_points": int(slanted.sum()), "moved": med(1.0 + err / np.where(slanted, disp, 1.0), slanted),
+    moved = 1.0 + err / np.where(slanted, disp, 1.0)
+    # along the face: the slanted points binned by their displacement as a share of the pair's largest (a whole
+    # slanted end: 0 at the pivot, where the flat rest of the end turns into the slant, 1 at its far edge)
+    share = np.abs(disp) / max(float(np.abs(disp[slanted]).max()), 1e-12) if slanted.any() else np.zeros(len(disp))
+    edges = np.linspace(0.0, 1.0, len(SHARE_BINS) + 1)
+    by_share = [med(moved, slanted & (share >= lo) & ((share < hi) if i < len(SHARE_BINS) - 1 else (share <= hi)))
+                for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:]))]
+    return {"slanted_points": int(slanted.sum()), "moved": med(moved, slanted), "moved_by_share": by_share,
             "err_slanted": med(np.abs(err), slanted), "err_flat": med(np.abs(err), flat)}
 
 
@@ -374,7 +384,10 @@ def slant_moves(checkpoint, data: str | Path, count: int = 256, *, seed: int = 0
                 "moved_median": float(np.median(mv)) if mv else None,
                 "short_rate": float(np.mean(np.array(mv) < 0.9)) if mv else None,  # pairs stopping > 10 % short
                 "err_slanted_median": float(np.median(es)) if es else None,
-                "err_flat_median": float(np.median(ef)) if ef else None}
+                "err_flat_median": float(np.median(ef)) if ef else None,
+                "moved_by_share": {name: (float(np.median(v)) if v else None) for name, v in
+                                   ((name, [r["moved_by_share"][i] for r in sel if r["moved_by_share"][i] is not None])
+                                    for i, name in enumerate(SHARE_BINS))}}
 
     classes = [c for c in FEATURE_CLASSES if any(r["feature"] == c for r in rows)]
     return {"checkpoint": str(loaded.path) if loaded is not None and loaded.path else None,

@@ -43,17 +43,18 @@ SHIPPED = {"checkpoint": "polycubenet-cpu.pt", "cpu_hours": 21.0, "gpu_hours": 0
            "parts_accepted": 7, "parts": 10, "anchored": True}
 
 
-def _plot(tmp_path, capsys, cont: list[dict], feat: list[dict]) -> str:
-    """Run the plot on the shipped point and these continue / feature points (an empty list: no file); its
-    printout."""
+def _plot(tmp_path, capsys, cont: list[dict], feat: list[dict], slant: list[dict] | None = None) -> str:
+    """Run the plot on the shipped point and these continue / feature / slant-moves points (an empty list: no
+    file); its printout."""
     files = {}
-    for name, pts in (("curve", [SHIPPED]), ("cont", cont), ("feat", feat)):
+    for name, pts in (("curve", [SHIPPED]), ("cont", cont), ("feat", feat), ("slant", slant or [])):
         files[name] = tmp_path / f"{name}.jsonl"
         if pts:
             files[name].write_text("".join(json.dumps(p) + "\n" for p in pts))
     out = tmp_path / "curve.png"
     assert plot_learning_curve.main(["--curve", str(files["curve"]), "--continue-curve", str(files["cont"]),
-                                     "--features-curve", str(files["feat"]), "--out", str(out)]) == 0
+                                     "--features-curve", str(files["feat"]), "--slant-curve", str(files["slant"]),
+                                     "--out", str(out)]) == 0
     assert out.stat().st_size > 0
     return capsys.readouterr().out
 
@@ -85,3 +86,24 @@ def test_plot_prints_the_features_line_per_class(tmp_path, capsys):
     assert [r[0] for r in rows] == ["14.82", "58.66"]
     assert rows[0][5:] == ["15%", "/128", "-", "-"]  # no chamfer, no neither pair at 14.82
     assert rows[1][5:] == ["28%", "/128", "-", "64%", "/", "33"]
+
+
+def test_plot_prints_the_slant_moves_line_per_class(tmp_path, capsys):
+    """The share of the way slanted faces are moved, per committed version: sorted by CPU-hours, one column per
+    feature class (a dash where a class has no pair), then the error left on slanted points."""
+    def cls(moved):
+        return {"pairs": 128, "moved_median": moved}
+
+    slant = [{"commit": c * 40, "cpu_hours": h, "gpu_hours": 0.62, "pairs": 256, "all": {"err_slanted_median": err},
+              "by_feature": by}
+             for c, h, err, by in (("f", 62.70, 0.0103, {"slanted end": cls(0.72), "chamfer": cls(0.58)}),
+                                   ("e", 14.82, 0.0134, {"slanted end": cls(0.43)}))]
+    feat = [{"commit": "e" * 40, "checkpoint": "polycubenet-cpu-continue.pt", "step": 1, "cpu_hours": 14.82,
+             "gpu_hours": 0.62, "pairs": 256, "steps": 1, "n_out": 4096, "chamfer_median": 0.009,
+             "chamfer_identity": 0.0113, "label_accuracy": 0.98, "exact": 0.3, "genus_match_genus_le2": 0.97,
+             "exact_by_feature": {"slanted end": {"pairs": 128, "exact": 0.15, "extracted": 0.9}}}]
+    text = _plot(tmp_path, capsys, [], feat, slant).split("share of the way", 1)[1]
+    rows = [ln.split() for ln in text.splitlines() if ln.strip() and ln.split()[0][0].isdigit()]
+    assert [r[0] for r in rows] == ["14.82", "62.70"]
+    assert rows[0][3:] == ["0.43", "-", "-", "0.0134"]
+    assert rows[1][3:] == ["0.72", "0.58", "-", "0.0103"]

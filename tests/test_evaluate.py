@@ -137,3 +137,23 @@ def test_slant_moves_reads_the_share_of_the_way_a_generator_takes_slanted_faces(
     assert got[1.0]["all"]["err_slanted_median"] == pytest.approx(0.0, abs=1e-9)
     assert got[0.5]["all"]["short_rate"] == 1.0 and got[1.0]["all"]["short_rate"] == 0.0
     assert got[0.0]["all"]["err_slanted_median"] > 0.01  # left where it was: at least MIN_MOVE from the plane
+
+
+def test_point_moves_bins_the_slanted_points_by_their_share_of_the_largest_displacement():
+    """A ramp left as it was at its pivot end and moved fully at its far end reads 0 in the first bin and 1 in the
+    last; the flat points (normal on an axis) are not in the bins."""
+    from polycubenet.evaluate import SHARE_BINS, point_moves
+
+    n = 200
+    s = np.linspace(0.0, 1.0, n)
+    slope = np.tan(np.radians(30.0))
+    anchors = np.stack([s, np.zeros(n), 1.0 - 0.2 * s], axis=1)  # a slanted end: 0.2 below the plane z = 1 at s = 1
+    normals = np.tile([slope, 0.0, 1.0], (n, 1))
+    targets = anchors.copy()
+    targets[:, 2] = 1.0
+    tn = np.tile([0.0, 0.0, 1.0], (n, 1))
+    cloud = anchors + (s > 0.5)[:, None] * (targets - anchors)  # the far half moved, the near half left
+    r = point_moves(anchors, normals, cloud, targets, tn)
+    assert len(r["moved_by_share"]) == len(SHARE_BINS)
+    assert r["moved_by_share"][0] == pytest.approx(0.0) and r["moved_by_share"][-1] == pytest.approx(1.0)
+    assert r["slanted_points"] == int((0.2 * s >= 0.01).sum())
