@@ -36,6 +36,24 @@ def versions(path: str = CONTINUE, repo: Path = ROOT) -> list[str]:
     return out[::-1]
 
 
+def committed_versions(tmp: str | Path) -> list[dict]:
+    """Every committed version of the continue file, oldest first, written into the folder ``tmp``: one dict
+    each with its commit, file, step, cumulative CPU-hours and GPU-hours."""
+    import torch
+
+    metas = []
+    for i, rev in enumerate(versions()):
+        blob = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:{CONTINUE}"], capture_output=True).stdout
+        if not blob:
+            continue
+        f = Path(tmp) / f"{i:03d}.pt"
+        f.write_bytes(blob)
+        ck = torch.load(f, map_location="cpu", weights_only=False)
+        metas.append({"commit": rev, "file": f, "step": ck.get("step"), "cpu_hours": float(ck.get("cpu_hours") or 0.0),
+                      "gpu_hours": float(ck.get("gpu_hours") or 0.0)})
+    return metas
+
+
 def select(metas: list[dict], done: set[str], min_gap: float) -> list[dict]:
     """The versions to evaluate: in order, each at least ``min_gap`` CPU-hours past the last one kept
     (points already in the curve, ``done``, count as kept), and not in ``done``."""
@@ -82,17 +100,8 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     out = Path(args.out)
     done = {p["commit"] for p in read_points(out)} if out.exists() else set()
-    metas = []
     with tempfile.TemporaryDirectory() as tmp:
-        for i, rev in enumerate(versions()):
-            blob = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:{CONTINUE}"], capture_output=True).stdout
-            if not blob:
-                continue
-            f = Path(tmp) / f"{i:03d}.pt"
-            f.write_bytes(blob)
-            ck = torch.load(f, map_location="cpu", weights_only=False)
-            metas.append({"commit": rev, "file": f, "step": ck.get("step"), "cpu_hours": float(ck.get("cpu_hours") or 0.0),
-                          "gpu_hours": float(ck.get("gpu_hours") or 0.0)})
+        metas = committed_versions(tmp)
         todo = select(metas, done, args.min_gap)
         print(f"{len(metas)} versions of {CONTINUE}, {len(done)} already in {out.name}, {len(todo)} to evaluate",
               flush=True)

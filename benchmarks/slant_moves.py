@@ -75,12 +75,11 @@ def main(argv=None) -> int:
 def curve(args) -> int:
     """One line per committed version of the continue file (``--min-gap`` apart) not yet in ``args.curve``."""
     import json
-    import subprocess
     import tempfile
 
     import torch
 
-    from continue_curve import CONTINUE, select, versions
+    from continue_curve import CONTINUE, committed_versions, select
 
     from polycubenet.evaluate import slant_moves
 
@@ -88,16 +87,7 @@ def curve(args) -> int:
     out = Path(args.curve)
     done = {json.loads(line)["commit"] for line in out.read_text().splitlines() if line.strip()} if out.exists() else set()
     with tempfile.TemporaryDirectory() as tmp:
-        metas = []
-        for i, rev in enumerate(versions()):
-            blob = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:{CONTINUE}"], capture_output=True).stdout
-            if not blob:
-                continue
-            f = Path(tmp) / f"{i:03d}.pt"
-            f.write_bytes(blob)
-            ck = torch.load(f, map_location="cpu", weights_only=False)
-            metas.append({"commit": rev, "file": f, "cpu_hours": float(ck.get("cpu_hours") or 0.0),
-                          "gpu_hours": float(ck.get("gpu_hours") or 0.0)})
+        metas = committed_versions(tmp)
         todo = select(metas, done, args.min_gap)
         print(f"{len(metas)} versions of {CONTINUE}, {len(done)} already in {out.name}, {len(todo)} to read", flush=True)
         print(f"{'commit':>8} {'CPU-h':>6} {'moved: slanted end':>18} {'chamfer':>8} {'err slanted':>11}")
