@@ -347,8 +347,8 @@ def slant_moves(checkpoint, data: str | Path, count: int = 256, *, seed: int = 0
 
     Unlike :func:`evaluate` the anchors are the training's: each target point's preimage on the part with the
     normal of the nearest condition point, so every output point has a known target and the error of a slanted
-    face can be read as a share of the way (a one-step regressor that is unsure how far a slanted face goes
-    stops short of the plane, and the extraction reads the ramp it leaves as a staircase).  ``generator``: a
+    face can be read as a share of the way (a cloud that stops short of the plane leaves a ramp, which the
+    extraction reads as a staircase).  ``generator``: a
     stand-in for :func:`~polycubenet.inference.generate` (then ``checkpoint`` may be None)."""
     from .synth.shards import FEATURE_CLASSES
 
