@@ -78,14 +78,14 @@ def curve(args) -> int:
     import tempfile
 
     import torch
-
     from continue_curve import CONTINUE, committed_versions, select
+    from plot_learning_curve import read_points
 
     from polycubenet.evaluate import slant_moves
 
     torch.set_num_threads(args.threads)
     out = Path(args.curve)
-    done = {json.loads(line)["commit"] for line in out.read_text().splitlines() if line.strip()} if out.exists() else set()
+    done = {p["commit"] for p in read_points(out)} if out.exists() else set()
     with tempfile.TemporaryDirectory() as tmp:
         metas = committed_versions(tmp)
         todo = select(metas, done, args.min_gap)
