@@ -54,6 +54,17 @@ def committed_versions(tmp: str | Path) -> list[dict]:
     return metas
 
 
+def pending(out: Path, tmp: str | Path, min_gap: float) -> tuple[list[dict], set[str], list[dict]]:
+    """``(versions, done, todo)``: the continue file's committed versions (:func:`committed_versions`, written
+    into ``tmp``), the commits already in the curve file ``out``, and the versions still to read there
+    (:func:`select`)."""
+    from plot_learning_curve import read_points
+
+    done = {p["commit"] for p in read_points(out)} if Path(out).exists() else set()
+    metas = committed_versions(tmp)
+    return metas, done, select(metas, done, min_gap)
+
+
 def select(metas: list[dict], done: set[str], min_gap: float) -> list[dict]:
     """The versions to evaluate: in order, each at least ``min_gap`` CPU-hours past the last one kept
     (points already in the curve, ``done``, count as kept), and not in ``done``."""
@@ -86,8 +97,6 @@ def point(meta: dict, result: dict) -> dict:
 def main(argv=None) -> int:
     import torch
 
-    from plot_learning_curve import read_points
-
     from polycubenet.evaluate import evaluate
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -99,10 +108,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     out = Path(args.out)
-    done = {p["commit"] for p in read_points(out)} if out.exists() else set()
     with tempfile.TemporaryDirectory() as tmp:
-        metas = committed_versions(tmp)
-        todo = select(metas, done, args.min_gap)
+        metas, done, todo = pending(out, tmp, args.min_gap)
         print(f"{len(metas)} versions of {CONTINUE}, {len(done)} already in {out.name}, {len(todo)} to evaluate",
               flush=True)
         print(f"{'commit':>8} {'CPU-h':>6} {'GPU-h':>5} {'Chamfer':>8} {'exact':>6} {'genus<=2':>8}")

@@ -78,17 +78,14 @@ def curve(args) -> int:
     import tempfile
 
     import torch
-    from continue_curve import CONTINUE, committed_versions, select
-    from plot_learning_curve import read_points
+    from continue_curve import CONTINUE, pending
 
     from polycubenet.evaluate import slant_moves
 
     torch.set_num_threads(args.threads)
     out = Path(args.curve)
-    done = {p["commit"] for p in read_points(out)} if out.exists() else set()
     with tempfile.TemporaryDirectory() as tmp:
-        metas = committed_versions(tmp)
-        todo = select(metas, done, args.min_gap)
+        metas, done, todo = pending(out, tmp, args.min_gap)
         print(f"{len(metas)} versions of {CONTINUE}, {len(done)} already in {out.name}, {len(todo)} to read", flush=True)
         print(f"{'commit':>8} {'CPU-h':>6} {'moved: slanted end':>18} {'chamfer':>8} {'err slanted':>11}")
         for m in todo:
