@@ -333,9 +333,8 @@ def point_moves(anchors: np.ndarray, normals: np.ndarray, cloud: np.ndarray, tar
     # along the face: the slanted points binned by their displacement as a share of the pair's largest (a whole
     # slanted end: 0 at the pivot, where the flat rest of the end turns into the slant, 1 at its far edge)
     share = np.abs(disp) / max(float(np.abs(disp[slanted]).max()), 1e-12) if slanted.any() else np.zeros(len(disp))
-    edges = np.linspace(0.0, 1.0, len(SHARE_BINS) + 1)
-    by_share = [med(moved, slanted & (share >= lo) & ((share < hi) if i < len(SHARE_BINS) - 1 else (share <= hi)))
-                for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:]))]
+    bin_of = np.minimum((share * len(SHARE_BINS)).astype(int), len(SHARE_BINS) - 1)  # share 1 in the last bin
+    by_share = [med(moved, slanted & (bin_of == i)) for i in range(len(SHARE_BINS))]
     return {"slanted_points": int(slanted.sum()), "moved": med(moved, slanted), "moved_by_share": by_share,
             "err_slanted": med(np.abs(err), slanted), "err_flat": med(np.abs(err), flat)}
 

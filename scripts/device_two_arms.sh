@@ -18,20 +18,17 @@ nproc; nvidia-smi -L 2>/dev/null
 W=${ARM_FLAGS:---preset cpu-anchored-normals-wide-write}
 A=${A_NAME:-w512} B=${B_NAME:-w2048}
 INIT=${INIT:-build/device/wide.pt} LR=${LR:-8e-5} MINUTES=${MINUTES:-6.8} SEEDS=${SEEDS:-70 71}
-DA=/root/pc DB=/root/pc
-[ -n "${B_SEEDS:-}" ] && DB=/root/pcB
+DA=/root/pc DB=/root/pc BGEN=(NOGEN=1)  # arm B reads arm A's pairs, unless it has its own seeds
+if [ -n "${B_SEEDS:-}" ]; then
+  DB=/root/pcB BGEN=(SEEDS="$B_SEEDS" FLAGS1="${B_FLAGS1:-}" FLAGS2="${B_FLAGS2:---cad-features --whole-slants}")
+fi
 mkdir -p $DA $DB
 env D=$DA INIT=$INIT BATCH=${A_BATCH:-256} LR=$LR MIN_LR_RATIO=${MIN_LR_RATIO:-0.125} SEEDS="$SEEDS" PER_SHARD=64 \
     WORKERS=${WORKERS:-6} RUNDIR=$DA/$A EXTRA="${A_EXTRA-$W}" \
     setsid nohup bash scripts/device_train.sh start $MINUTES > $DA/$A.out 2>&1 &
-if [ -n "${B_SEEDS:-}" ]; then
-  env D=$DB INIT=$INIT BATCH=${B_BATCH:-128} LR=$LR MIN_LR_RATIO=${MIN_LR_RATIO:-0.125} SEEDS="$B_SEEDS" PER_SHARD=64 \
-      WORKERS=${WORKERS:-6} FLAGS1="${B_FLAGS1:-}" FLAGS2="${B_FLAGS2:---cad-features --whole-slants}" RUNDIR=$DB/$B \
-      EXTRA="${B_EXTRA-$W --points 2048}" setsid nohup bash scripts/device_train.sh start $MINUTES > $DB/$B.out 2>&1 &
-else
-  env D=$DB NOGEN=1 INIT=$INIT BATCH=${B_BATCH:-128} LR=$LR MIN_LR_RATIO=${MIN_LR_RATIO:-0.125} RUNDIR=$DB/$B \
-      EXTRA="${B_EXTRA-$W --points 2048}" setsid nohup bash scripts/device_train.sh start $MINUTES > $DB/$B.out 2>&1 &
-fi
+env D=$DB "${BGEN[@]}" INIT=$INIT BATCH=${B_BATCH:-128} LR=$LR MIN_LR_RATIO=${MIN_LR_RATIO:-0.125} PER_SHARD=64 \
+    WORKERS=${WORKERS:-6} RUNDIR=$DB/$B EXTRA="${B_EXTRA-$W --points 2048}" \
+    setsid nohup bash scripts/device_train.sh start $MINUTES > $DB/$B.out 2>&1 &
 while true; do
   sleep 30; el=$(( $(date +%s) - T0 ))
   echo "t=$el s shards=$(ls $DA/mix | wc -l) $(ls $DB/mix | wc -l)"
