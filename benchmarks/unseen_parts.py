@@ -163,7 +163,7 @@ def meets_bars(r, cfg) -> bool:
 
 
 def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int = 0,
-                 learned_maps: tuple[str, ...] | None = None) -> dict:
+                 learned_maps: tuple[str, ...] | None = None, snap_planes: float | None = None) -> dict:
     """Mesh through the learned source only (``--polycube learned``: the first draw at ``steps``,
     then the model's further draws, ``polycubenet.policy.LEARNED_DRAWS``; no classical fallback), as
     ``mesh_part`` does: name -> (valid, faithful and at least the quality bar ``min_sj``, SJ min,
@@ -180,6 +180,7 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
     cfg = PipelineConfig(polycube="learned", target_hexes=3000)
     if learned_maps:
         cfg = dataclasses.replace(cfg, learned_maps=tuple(learned_maps))
+    cfg = dataclasses.replace(cfg, snap_planes=snap_planes)
     for p in paths:
         t0 = time.perf_counter()
         try:
@@ -218,6 +219,9 @@ def main(argv=None) -> int:
     ap.add_argument("--learned-maps", default=None,
                     help="with --mesh: the maps a learned polycube is pulled back through, in order, comma-separated "
                          "(PipelineConfig.learned_maps: registration, anchors; default: the registration alone)")
+    ap.add_argument("--snap-planes", type=float, default=None, metavar="DEG",
+                    help="PipelineConfig.snap_planes: each planar part face tilted at least DEG from its label's axis "
+                         "onto one plane in the learned cloud (default: the pipeline's)")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/unseen_parts.json"))
     ap.add_argument("--make-only", metavar="DIR", help="only write the parts as STEP files into DIR and stop (no model): "
                     "a folder for `polycubenet mesh` or benchmarks/bench_auto_cost.py --parts")
@@ -239,8 +243,9 @@ def main(argv=None) -> int:
         r["knife_edge_deg"] = round(knife_edge_deg(p), 1)
     examples = sorted((ROOT / "examples/parts").glob("*.step"))
     maps = tuple(args.learned_maps.split(",")) if args.learned_maps else None
-    meshed = mesh_learned([p for p, _ in made], args.checkpoint, args.steps, args.draw_seed, maps) if args.mesh else {}
-    ex_meshed = mesh_learned(examples, args.checkpoint, args.steps, args.draw_seed, maps) if args.mesh else {}
+    meshed = mesh_learned([p for p, _ in made], args.checkpoint, args.steps, args.draw_seed, maps,
+                          args.snap_planes) if args.mesh else {}
+    ex_meshed = mesh_learned(examples, args.checkpoint, args.steps, args.draw_seed, maps, args.snap_planes) if args.mesh else {}
     ex_rows, _ = part_rows(args.checkpoint, examples, 4096, args.steps)
     print(f"\n{'part':<18} {'genus':>5} {'first draw':<28} {'learned mesh: SJ, Hausdorff':<28} shape")
     for r in rows:

@@ -101,12 +101,14 @@ class PolycubeCloud(_NpzRecord):
     meta : dict, ``provenance`` ("learned" / "classical" / "oracle") and details
     anchors : (M, 3) float64 or None, the part point each point was generated from (an anchored
         model's cloud: its own map to the part, :mod:`polycubenet.anchormap`); None otherwise
+    anchor_normals : (M, 3) float64 or None, the part's normal at each anchor (when the model takes them)
     """
 
     points: np.ndarray
     normals: np.ndarray
     meta: dict = dataclasses.field(default_factory=dict)
     anchors: np.ndarray | None = None
+    anchor_normals: np.ndarray | None = None
 
 
 @dataclasses.dataclass

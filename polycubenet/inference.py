@@ -272,4 +272,5 @@ class ModelSource:
             "seconds": round(time.perf_counter() - t0, 3),
         }
         return PolycubeCloud(cloud[:, :3].astype(np.float64), cloud[:, 3:].astype(np.float64), meta=meta,
-                             anchors=None if a is None else a[:, :3].astype(np.float64))
+                             anchors=None if a is None else a[:, :3].astype(np.float64),
+                             anchor_normals=None if a is None or a.shape[1] < 6 else a[:, 3:6].astype(np.float64))

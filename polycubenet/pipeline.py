@@ -103,6 +103,9 @@ class PipelineConfig:
         correspondences, :mod:`polycubenet.anchormap`).  The default is the registration alone: with the
         anchors as well, before or after it, the dev sets meshed the same 17 of 32 parts (session 26,
         MODEL_CARD "The model's own map"), so they are an option, not the default
+    snap_planes : None, or a learned cloud's points on each planar face of the part tilted at least this
+        many degrees from its label's axis are moved onto one plane before the extraction
+        (:func:`polycubenet.planesnap.snap_planes`; needs an anchored model that takes the part's normals)
     """
 
     n_sample: int = 4096
@@ -120,6 +123,7 @@ class PipelineConfig:
     min_sj: float | None = 0.2
     realise: RealiseConfig | None = RealiseConfig()
     learned_maps: tuple[str, ...] = ("registration",)
+    snap_planes: float | None = None
 
 
 #: the values of ``PipelineConfig.polycube`` (and of the command-line ``--polycube``): ``policy.MODES``
@@ -373,6 +377,12 @@ def _polycube_stages(source, sample, Vc, F, genus, config, name, clock, res):
     res.cloud = cloud
     with clock("cleanup"):
         P, N, keep = remove_outliers(cloud.points, cloud.normals)
+        an = getattr(cloud, "anchor_normals", None)
+        if config.snap_planes is not None and an is not None and cloud.meta.get("provenance") == "learned":
+            from .planesnap import snap_planes
+
+            P, cloud.meta["snapped"] = snap_planes(P, N, np.asarray(cloud.anchors, float)[keep],
+                                                   np.asarray(an, float)[keep], min_deg=config.snap_planes)
     with clock("extract"):
         poly = cloud_polycube(cloud, P, N, genus, config, name)
     res.polycube = poly

@@ -226,3 +226,69 @@ def test_only_the_first_draw_and_the_one_step_draws_get_the_generator_fallbacks(
         cloud_polycube(cloud, P, N, 0, extraction_config("learned+1", cfg), "part")
     assert cloud_polycube(cloud, P, N, 0, extraction_config("learned+2", cfg), "part").occupancy.shape == (1, 1, 1)
     assert extraction_config("classical", cfg) is cfg and extraction_config("voxel+2", cfg) is cfg
+
+
+def _slanted_block_mesh(deg: float):
+    """The 0.8 x 0.3 x 0.2 block of :func:`_slanted_block` as a triangle mesh (planar faces)."""
+    import trimesh
+
+    top = -0.4 + 0.2 * np.tan(np.radians(deg))
+    xz = [(-0.4, -0.1), (0.4, -0.1), (0.4, 0.1), (top, 0.1)]
+    m = trimesh.convex.convex_hull(np.array([(x, y, z) for x, z in xz for y in (-0.15, 0.15)]))
+    return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+def test_plane_patches_finds_each_planar_face_and_leaves_a_round_one():
+    """Anchors on the slanted block: six planar faces, each one patch (the slanted end among them);
+    on a faceted cylinder's wall no strip is wide enough to be a face, while its two caps are."""
+    import trimesh
+
+    from polycubenet.planesnap import plane_patches
+    from polycubenet.sampling import uniform_sample
+
+    V, F = _slanted_block_mesh(30)
+    s = uniform_sample(V, F, 4096, np.random.default_rng(0))
+    patch = plane_patches(s.points, s.normals)
+    assert patch.max() + 1 == 6 and (patch >= 0).mean() > 0.9
+    slanted = np.abs(s.normals[:, 0]) > 0.5  # the slanted end (normal 30 deg from -x) and the +x end
+    for r in np.unique(patch[slanted & (patch >= 0)]):  # each patch holds one face's normal only
+        assert np.ptp(s.normals[patch == r], axis=0).max() < 1e-6
+    cyl = trimesh.creation.cylinder(radius=0.2, height=0.6, sections=48)
+    c = uniform_sample(np.asarray(cyl.vertices), np.asarray(cyl.faces), 4096, np.random.default_rng(1))
+    p = plane_patches(c.points, c.normals)
+    wall = np.abs(c.normals[:, 2]) < 0.5
+    assert (p[wall] == -1).all() and (p[~wall] >= 0).mean() > 0.9 and p.max() + 1 == 2
+
+
+def test_snap_planes_puts_a_slanted_face_on_one_plane_and_leaves_the_rest():
+    """A cloud that took the slanted end half the way to the -x end face (a ramp, as the model leaves
+    it): the end's points go to one x; the axis faces are left as they are with ``min_deg=5``, and the
+    extraction then gives one box where the ramp alone gives more slabs."""
+    from polycubenet.planesnap import snap_planes
+    from polycubenet.sampling import uniform_sample
+
+    deg = 40.0
+    V, F = _slanted_block_mesh(deg)
+    s = uniform_sample(V, F, 4096, np.random.default_rng(2))
+    A, AN = s.points, s.normals
+    end = AN[:, 0] < -0.5
+    P = A.copy()
+    P[end, 0] = -0.4 + 0.5 * (A[end, 0] + 0.4)  # half the way onto x = -0.4
+    P += np.random.default_rng(3).normal(0.0, 0.002, P.shape)
+    k = np.argmax(np.abs(AN), axis=1)
+    N = np.zeros_like(AN)
+    N[np.arange(len(N)), k] = np.sign(AN[np.arange(len(N)), k])
+    got, info = snap_planes(P, N, A, AN, min_deg=5.0)
+    # a white-noise sample leaves a few of the end's points in gaps wider than the face's reach: those stay
+    assert info["faces"] == 1 and info["tilted"] == 1 and info["points"] >= 0.95 * end.sum()
+    x, count = np.unique(got[end, 0], return_counts=True)
+    assert count.max() == info["points"] and np.array_equal(got[~end], P[~end])
+    assert -0.4 < x[np.argmax(count)] < -0.4 + 0.5 * 0.2 * np.tan(np.radians(deg))
+    cfg = ExtractConfig().for_exact_clouds()
+    poly = extract(got, N, genus=0, config=cfg)
+    assert poly.occupancy.shape == (1, 1, 1)
+    try:
+        ramp = extract(P, N, genus=0, config=cfg).occupancy.shape
+    except PolycubeError:
+        ramp = None
+    assert ramp != (1, 1, 1)
