@@ -163,7 +163,7 @@ def meets_bars(r, cfg) -> bool:
 
 
 def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int = 0,
-                 learned_maps: tuple[str, ...] | None = None, snap_planes: float | None = None) -> dict:
+                 learned_maps: tuple[str, ...] | None = None, snap_planes: float | str | None = "default") -> dict:
     """Mesh through the learned source only (``--polycube learned``: the first draw at ``steps``,
     then the model's further draws, ``polycubenet.policy.LEARNED_DRAWS``; no classical fallback), as
     ``mesh_part`` does: name -> (valid, faithful and at least the quality bar ``min_sj``, SJ min,
@@ -171,7 +171,8 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
     diagonal), why the first draw was left, the map that made the kept mesh: ``registration`` or
     ``exact (realised)``, :func:`polycubenet.pipeline.pull_back_learned`).  ``draw_seed``: the model's noise
     seed (``ModelSource(seed=...)``; 0 as the pipeline runs it), to see what other draws would give.
-    ``learned_maps``: ``PipelineConfig.learned_maps`` (None: the default, the registration alone)."""
+    ``learned_maps``: ``PipelineConfig.learned_maps`` (None: the default, the registration alone).
+    ``snap_planes``: ``PipelineConfig.snap_planes`` (``"default"``: the pipeline's; None: off)."""
     from polycubenet.inference import ModelSource
     from polycubenet.pipeline import PipelineConfig, mesh_part
     from polycubenet.policy import refinement
@@ -180,7 +181,8 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
     cfg = PipelineConfig(polycube="learned", target_hexes=3000)
     if learned_maps:
         cfg = dataclasses.replace(cfg, learned_maps=tuple(learned_maps))
-    cfg = dataclasses.replace(cfg, snap_planes=snap_planes)
+    if snap_planes != "default":
+        cfg = dataclasses.replace(cfg, snap_planes=snap_planes)
     for p in paths:
         t0 = time.perf_counter()
         try:
@@ -219,9 +221,9 @@ def main(argv=None) -> int:
     ap.add_argument("--learned-maps", default=None,
                     help="with --mesh: the maps a learned polycube is pulled back through, in order, comma-separated "
                          "(PipelineConfig.learned_maps: registration, anchors; default: the registration alone)")
-    ap.add_argument("--snap-planes", type=float, default=None, metavar="DEG",
+    ap.add_argument("--snap-planes", default="default", metavar="DEG|off",
                     help="PipelineConfig.snap_planes: each planar part face tilted at least DEG from its label's axis "
-                         "onto one plane in the learned cloud (default: the pipeline's)")
+                         "onto one plane in the learned cloud; off: never (default: the pipeline's)")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/unseen_parts.json"))
     ap.add_argument("--make-only", metavar="DIR", help="only write the parts as STEP files into DIR and stop (no model): "
                     "a folder for `polycubenet mesh` or benchmarks/bench_auto_cost.py --parts")
@@ -243,6 +245,8 @@ def main(argv=None) -> int:
         r["knife_edge_deg"] = round(knife_edge_deg(p), 1)
     examples = sorted((ROOT / "examples/parts").glob("*.step"))
     maps = tuple(args.learned_maps.split(",")) if args.learned_maps else None
+    if args.snap_planes != "default":
+        args.snap_planes = None if args.snap_planes == "off" else float(args.snap_planes)
     meshed = mesh_learned([p for p, _ in made], args.checkpoint, args.steps, args.draw_seed, maps,
                           args.snap_planes) if args.mesh else {}
     ex_meshed = mesh_learned(examples, args.checkpoint, args.steps, args.draw_seed, maps, args.snap_planes) if args.mesh else {}
@@ -268,7 +272,7 @@ def main(argv=None) -> int:
         print(f"meshed valid and faithful through the learned source (--polycube learned): unseen {u}/{len(rows)} "
               f"({u1} by the first draw, {ur} realised exactly), examples {e}/{len(examples)} ({e1} by the first "
               f"draw, {er} realised exactly)")
-    write_json(args.json, {"checkpoint": args.checkpoint, "seed": args.seed, "family": args.family, "count": len(rows), "steps": args.steps,
+    write_json(args.json, {"checkpoint": args.checkpoint, "snap_planes": args.snap_planes, "seed": args.seed, "family": args.family, "count": len(rows), "steps": args.steps,
                            "draw_seed": args.draw_seed, "learned_maps": maps,
                            "accepted": acc, "examples_accepted": ex_acc, "examples": len(ex_rows),
                            "meshed_valid": counts(meshed)[1] if meshed else None,

@@ -414,14 +414,16 @@ def polycube_cloud(kind: str, part_path: str | os.PathLike, loaded: str | os.Pat
 def write_generated(generated: np.ndarray, dest: str | os.PathLike, meta: dict,
                     anchors: np.ndarray | None = None) -> Path:
     """Save one part's generated cloud ``(M, 6)`` (xyz + normals) as a PolycubeCloud, with the part points
-    ``anchors (M, 3)`` it was generated from (an anchored model)."""
+    ``anchors (M, 3)`` it was generated from (an anchored model; ``(M, 6)`` with the part's normals there)."""
     g = np.asarray(generated, dtype=np.float64)
     if g.ndim != 2 or g.shape[1] != 6 or not np.isfinite(g).all():
         raise PolycubeError(f"the model returned an unusable cloud (shape {g.shape}, finite {bool(np.isfinite(g).all())})")
     n = np.linalg.norm(g[:, 3:], axis=1, keepdims=True)
     normals = np.divide(g[:, 3:], n, out=np.zeros_like(g[:, 3:]), where=n > 0)
-    a = None if anchors is None else np.asarray(anchors, dtype=np.float64)[:, :3]
-    return PolycubeCloud(g[:, :3], normals, meta={"provenance": "learned", **meta}, anchors=a).save(dest)
+    a = None if anchors is None else np.asarray(anchors, dtype=np.float64)
+    an = None if a is None or a.shape[1] < 6 else a[:, 3:6]
+    return PolycubeCloud(g[:, :3], normals, meta={"provenance": "learned", **meta}, anchors=None if a is None else a[:, :3],
+                         anchor_normals=an).save(dest)
 
 
 def cleanup_extract(cloud_path: str | os.PathLike, loaded: str | os.PathLike, dest: str | os.PathLike,
@@ -434,12 +436,11 @@ def cleanup_extract(cloud_path: str | os.PathLike, loaded: str | os.PathLike, de
     the polycube fails validation.
     """
     from .classical import ClassicalCloud
-    from .cleanup import remove_outliers
-    from .pipeline import cloud_polycube
+    from .pipeline import clean_cloud, cloud_polycube
 
     cloud = ClassicalCloud.load(cloud_path)  # a plain cloud loads with the classical fields None
     _, _, _, meta = read_loaded(loaded)
-    P, N, keep = remove_outliers(cloud.points, cloud.normals)
+    P, N, keep = clean_cloud(cloud, config)
     poly = cloud_polycube(cloud, P, N, meta["part"].get("genus"), config, meta["name"])
     exact = _exact_map_arrays(cloud_path)
     if cloud.anchors is not None:  # a generated cloud's anchors (its own map to the part), row by row with P

@@ -103,9 +103,15 @@ class PipelineConfig:
         correspondences, :mod:`polycubenet.anchormap`).  The default is the registration alone: with the
         anchors as well, before or after it, the dev sets meshed the same 17 of 32 parts (session 26,
         MODEL_CARD "The model's own map"), so they are an option, not the default
-    snap_planes : None, or a learned cloud's points on each planar face of the part tilted at least this
-        many degrees from its label's axis are moved onto one plane before the extraction
-        (:func:`polycubenet.planesnap.snap_planes`; needs an anchored model that takes the part's normals)
+    snap_planes : None (the default: never), or a learned cloud's points on each planar face of the part
+        tilted at least this many degrees from its label's axis are moved onto one plane before the
+        extraction (:func:`polycubenet.planesnap.snap_planes`; needs an anchored model that takes the part's
+        normals).  The model leaves a slanted end as a ramp that the extraction cuts into a staircase; the
+        snap removes the ramp but not the parts' other structure errors, and meshed no more never-seen
+        parts (session 33, at 5 degrees, the learned source alone: dev machined seeds 61 and 67 with the
+        65.27 h continue file 18 -> 20 of 32, +3 -1; machined 11, 31, 53 with the shipped file 27 -> 25 of
+        48, +1 -3; mixed 11 and 31 15 -> 15 of 32; at 0 degrees, the axis-aligned faces too, seed 67 alone
+        11 -> 9), so it is an option, not the default
     """
 
     n_sample: int = 4096
@@ -376,18 +382,27 @@ def _polycube_stages(source, sample, Vc, F, genus, config, name, clock, res):
         cloud = source(sample, Vc, F, config)
     res.cloud = cloud
     with clock("cleanup"):
-        P, N, keep = remove_outliers(cloud.points, cloud.normals)
-        an = getattr(cloud, "anchor_normals", None)
-        if config.snap_planes is not None and an is not None and cloud.meta.get("provenance") == "learned":
-            from .planesnap import snap_planes
-
-            P, cloud.meta["snapped"] = snap_planes(P, N, np.asarray(cloud.anchors, float)[keep],
-                                                   np.asarray(an, float)[keep], min_deg=config.snap_planes)
+        P, N, keep = clean_cloud(cloud, config)
     with clock("extract"):
         poly = cloud_polycube(cloud, P, N, genus, config, name)
     res.polycube = poly
     A = None if getattr(cloud, "anchors", None) is None else np.asarray(cloud.anchors, float)[keep]
     return cloud, P, N, A, poly
+
+
+def clean_cloud(cloud: PolycubeCloud, config: PipelineConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A source's cloud as it goes to the extraction (both drivers call this): the outlier filter
+    (:func:`~polycubenet.cleanup.remove_outliers`: points, normals, keep mask), then for a learned cloud
+    that carries its anchors' normals and with ``config.snap_planes`` set, each tilted planar face of the
+    part on one plane (:func:`polycubenet.planesnap.snap_planes`; counts in ``cloud.meta["snapped"]``)."""
+    P, N, keep = remove_outliers(cloud.points, cloud.normals)
+    an = getattr(cloud, "anchor_normals", None)
+    if config.snap_planes is not None and an is not None and cloud.meta.get("provenance") == "learned":
+        from .planesnap import snap_planes
+
+        P, cloud.meta["snapped"] = snap_planes(P, N, np.asarray(cloud.anchors, float)[keep],
+                                               np.asarray(an, float)[keep], min_deg=config.snap_planes)
+    return P, N, keep
 
 
 def partition_polycube(poly: Polycube, config: PipelineConfig):

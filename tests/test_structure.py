@@ -292,3 +292,40 @@ def test_snap_planes_puts_a_slanted_face_on_one_plane_and_leaves_the_rest():
     except PolycubeError:
         ramp = None
     assert ramp != (1, 1, 1)
+
+
+def test_clean_cloud_snaps_a_learned_cloud_only_and_the_flow_file_keeps_what_it_needs(tmp_path):
+    """Both drivers clean a cloud through ``pipeline.clean_cloud``: a learned cloud whose anchors carry the
+    part's normals gets its slanted face on one plane (``snap_planes=5``), the same cloud as a classical
+    one or with ``snap_planes=None`` (the default) does not; the flow's saved cloud (``write_generated``)
+    keeps the anchors' normals for it."""
+    import dataclasses
+
+    from polycubenet.data import PolycubeCloud
+    from polycubenet.library import write_generated
+    from polycubenet.pipeline import PipelineConfig, clean_cloud
+    from polycubenet.sampling import uniform_sample
+
+    V, F = _slanted_block_mesh(40.0)
+    s = uniform_sample(V, F, 4096, np.random.default_rng(2))
+    end = s.normals[:, 0] < -0.5
+    P = s.points.copy()
+    P[end, 0] = -0.4 + 0.5 * (s.points[end, 0] + 0.4)
+    k = np.argmax(np.abs(s.normals), axis=1)
+    N = np.zeros_like(P)
+    N[np.arange(len(N)), k] = np.sign(s.normals[np.arange(len(N)), k])
+    path = write_generated(np.hstack([P, N]), tmp_path / "cloud.npz", {"checkpoint": "test"},
+                           anchors=np.hstack([s.points, s.normals]))
+    cloud = PolycubeCloud.load(path)
+    assert np.allclose(cloud.anchor_normals, s.normals)
+
+    def spread(c, cfg):
+        Q, _, keep = clean_cloud(c, cfg)
+        return np.ptp(Q[end[keep], 0])
+
+    cfg = PipelineConfig(snap_planes=5.0)
+    assert PipelineConfig().snap_planes is None
+    assert spread(cloud, cfg) < 0.25 * spread(cloud, dataclasses.replace(cfg, snap_planes=None))
+    assert cloud.meta["snapped"]["tilted"] == 1
+    classical = dataclasses.replace(cloud, meta={"provenance": "classical"})
+    assert spread(classical, cfg) == spread(cloud, dataclasses.replace(cfg, snap_planes=None))
