@@ -109,8 +109,8 @@ class PipelineConfig:
         normals).  The model leaves a slanted end as a ramp that the extraction cuts into a staircase; the
         snap removes the ramp but not the parts' other structure errors, and meshed no more never-seen
         parts (session 33, at 5 degrees, the learned source alone: dev machined seeds 61 and 67 with the
-        65.27 h continue file 18 -> 20 of 32, +3 -1; machined 11, 31, 53 with the shipped file 27 -> 25 of
-        48, +1 -3; mixed 11 and 31 15 -> 15 of 32; at 0 degrees, the axis-aligned faces too, seed 67 alone
+        65.27 h continue file 18 -> 20 of 32, +3 -1; machined 11, 31, 53, 103 with the shipped file 35 -> 35
+        of 64, +3 -3; mixed 11 and 31 15 -> 15 of 32; at 0 degrees, the axis-aligned faces too, seed 67 alone
         11 -> 9), so it is an option, not the default
     """
 
