@@ -80,14 +80,16 @@ def plane_patches(anchors: np.ndarray, normals: np.ndarray, spacing: float | Non
             continue
         # stragglers on the face's plane (small components at its corners and rims) join it, grown
         # through its neighbourhood until nothing more joins
-        centre, face = A[members].mean(axis=0), members
-        while True:
-            ring = np.unique(np.concatenate(tree.query_ball_point(A[face], radius_spacings * h))).astype(np.int64)
-            ring = np.setdiff1d(ring, face)
+        centre, face, new = A[members].mean(axis=0), members, members
+        near = np.empty(0, dtype=np.int64)
+        while True:  # only the points that joined last are queried again
+            near = np.union1d(near, np.concatenate(tree.query_ball_point(A[new], radius_spacings * h)).astype(np.int64))
+            ring = np.setdiff1d(near, face)
             on = (n[ring] @ m >= cos_n) & (np.abs((A[ring] - centre) @ m) <= 0.25 * h) & (out[ring] < 0)
             if not on.any():
                 break
-            face = np.union1d(face, ring[on])
+            new = ring[on]
+            face = np.union1d(face, new)
         off = ring[n[ring] @ m < cos_n]
         if len(off) and np.mean(n[off] @ m >= np.cos(np.radians(SMOOTH_DEG))) > SMOOTH_SHARE:
             continue
@@ -128,7 +130,7 @@ def snap_planes(points: np.ndarray, normals: np.ndarray, anchors: np.ndarray, an
         tilt = np.degrees(np.arccos(min(1.0, abs(m[a]) / max(np.linalg.norm(m), 1e-12))))
         if tilt < min_deg:
             continue
-        move = idx[(axis[idx] == a) & (np.sign(sign[idx]) == s)]
+        move = idx[(axis[idx] == a) & (sign[idx] == s)]
         P[move, a] = np.median(P[move, a])
         info["faces"] += 1
         info["tilted"] += int(tilt >= 5.0)
