@@ -239,6 +239,42 @@ def test_whole_slants_add_slanted_end_cuts_to_valid_pairs():
     assert "slant_end" in with_ and "slant_end" not in without
 
 
+def test_full_slants_cut_across_the_whole_end_and_leave_the_default_stream():
+    """``full_ends=1``: every whole-end cut pivots on the end's edge, so the slanted plane covers the whole
+    end face (no strip of it stays where it was); the default cuts leave 20-70 % of it flat.  With
+    ``full_ends=0`` a seed draws exactly the maps it drew before the option existed; a share outside
+    [0, 1] is refused."""
+    from polycubenet.synth.deform import random_deformation
+
+    lo, hi = -0.5 * np.ones(3), 0.5 * np.ones(3)
+    lo[0], hi[0] = -1.0, 1.0  # a long bar: the cuts mostly take an end of x
+
+    def flat_share(full):
+        shares = []
+        for s in range(60):
+            d = random_deformation(np.random.default_rng(s), lo, hi, whole_ends=True, strength=0.0, full_ends=full)
+            for m in d.maps:
+                if m.kind != "slant_end":
+                    continue
+                g = np.linspace(0.0, 1.0, 41)
+                face = lo + (hi - lo) * np.array([[u, v, w] for u in g for v in g for w in g])
+                face = face[np.isclose(face[:, m.axis], m.face)]
+                moved = np.abs(m(face)[:, m.axis] - m.face) > 1e-9
+                shares.append(1.0 - moved.mean())
+        return np.array(shares)
+
+    full, partial = flat_share(1.0), flat_share(0.0)
+    assert len(full) >= 10 and len(partial) >= 10
+    assert full.max() <= 0.05  # only the pivot's row of the grid stays on the face
+    assert partial.min() >= 0.15
+    for s in range(20):
+        a = random_deformation(np.random.default_rng(s), lo, hi, whole_ends=True, strength=0.5).to_dict()
+        b = random_deformation(np.random.default_rng(s), lo, hi, whole_ends=True, strength=0.5, full_ends=0.0).to_dict()
+        assert a == b
+    with pytest.raises(ValueError, match="full_ends"):
+        random_deformation(np.random.default_rng(0), lo, hi, whole_ends=True, full_ends=1.5)
+
+
 
 def test_max_strength_caps_the_global_maps():
     """``max_strength=0``: the pairs keep their roundings and cuts but get no global map (ramp, taper,

@@ -483,6 +483,7 @@ def random_deformation(
     slanted_ends: bool = False,
     whole_ends: bool = False,
     max_strength: float | None = None,
+    full_ends: float = 0.0,
 ) -> DeformationMap:
     """A random composition: roundings (holes, edges), then ramp / taper / shear / twist / bend / FFD.
 
@@ -506,6 +507,10 @@ def random_deformation(
         Off, the random stream is the one before this option existed.
     max_strength : float or None, a cap on the random ``strength`` (0.35: the mild global maps of
         machined parts, no bends or twists at full strength); the random stream does not change.
+    full_ends : float in [0, 1], the share of ``whole_ends`` cuts whose plane runs across the whole end
+        (the pivot on the end's edge: no flat strip of the end face is left, as when a saw cuts a part's
+        end off at an angle; the polycube's end face stays at the cut's outermost edge).  0: the random
+        stream is the one before this option existed.
 
     Returns
     -------
@@ -566,11 +571,15 @@ def random_deformation(
                                   np.asarray(e["signs"], dtype=np.float64).copy(), float(r_b), "chamfer", fade,
                                   float(r_c)))
 
+    if not 0.0 <= full_ends <= 1.0:
+        raise ValueError(f"full_ends must be in [0, 1]; got {full_ends}")
     if whole_ends and rng.random() < 0.5:
         axis = int(np.argmax(ext)) if rng.random() < 0.7 else int(rng.integers(3))  # mostly an end of the length
         by = int(rng.choice([a for a in range(3) if a != axis]))
         sign, side = float(rng.choice([-1.0, 1.0])), float(rng.choice([-1.0, 1.0]))
         pivot = float(lo[by] + rng.uniform(0.2, 0.7) * ext[by])
+        if full_ends > 0 and rng.random() < full_ends:  # across the whole end: the pivot on the edge it tilts from
+            pivot = float(lo[by] if side > 0 else hi[by])
         reach = float(hi[by] - pivot if side > 0 else pivot - lo[by])
         slope = float(np.tan(np.radians(rng.uniform(20.0, 45.0))))
         slope = min(slope, 0.8 * ext[axis] / (2.0 * reach))  # the fade (2 slope reach) within 80 % of the length

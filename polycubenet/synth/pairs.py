@@ -217,6 +217,7 @@ def make_pair(
     whole_slants: bool = False,
     max_strength: float | None = None,
     tall_bosses: bool = False,
+    full_slants: float = 0.0,
 ) -> SynthPair:
     """Generate one pair from ``seed`` (see the module docstring for the steps).
 
@@ -241,6 +242,9 @@ def make_pair(
         (``random_deformation(max_strength=...)``: 0.35 for machined-like parts); None: no cap.
     tall_bosses : bool, more and taller bosses (:func:`~polycubenet.synth.polycube.random_polycube`); with
         ``cad_features`` most are rounded into posts.  Off, a seed gives the pair it gave before.
+    full_slants : float in [0, 1], with ``whole_slants``: the share of those cuts that run across the whole
+        end, leaving none of its face (``random_deformation(full_ends=...)``).  0: a seed gives the pair it
+        gave before.
 
     Returns
     -------
@@ -264,7 +268,7 @@ def make_pair(
         timings["polycube"] += t1 - t0
         edges = convex_edges(pc.xs, pc.ys, pc.zs, pc.occupancy)
         dmap = random_deformation(rng, lo, hi, holes, edges, strength=strength, slanted_ends=cad_features,
-                                   whole_ends=whole_slants, max_strength=max_strength)
+                                   whole_ends=whole_slants, max_strength=max_strength, full_ends=full_slants)
         ok, min_det = check_invertible(dmap, lo, hi, rng, extra=V0)
         timings["deformation"] += time.perf_counter() - t1
         if not ok:
