@@ -249,6 +249,9 @@ def test_full_slants_cut_across_the_whole_end_and_leave_the_default_stream():
     lo, hi = -0.5 * np.ones(3), 0.5 * np.ones(3)
     lo[0], hi[0] = -1.0, 1.0  # a long bar: the cuts mostly take an end of x
 
+    g = np.linspace(0.0, 1.0, 41)
+    grid = lo + (hi - lo) * np.array([[u, v, w] for u in g for v in g for w in g])
+
     def flat_share(full):
         shares = []
         for s in range(60):
@@ -256,9 +259,7 @@ def test_full_slants_cut_across_the_whole_end_and_leave_the_default_stream():
             for m in d.maps:
                 if m.kind != "slant_end":
                     continue
-                g = np.linspace(0.0, 1.0, 41)
-                face = lo + (hi - lo) * np.array([[u, v, w] for u in g for v in g for w in g])
-                face = face[np.isclose(face[:, m.axis], m.face)]
+                face = grid[np.isclose(grid[:, m.axis], m.face)]
                 moved = np.abs(m(face)[:, m.axis] - m.face) > 1e-9
                 shares.append(1.0 - moved.mean())
         return np.array(shares)

@@ -516,6 +516,8 @@ def random_deformation(
     -------
     DeformationMap
     """
+    if not 0.0 <= full_ends <= 1.0:
+        raise ValueError(f"full_ends must be in [0, 1]; got {full_ends}")
     lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
     ext = hi - lo
     center = 0.5 * (lo + hi)
@@ -571,8 +573,6 @@ def random_deformation(
                                   np.asarray(e["signs"], dtype=np.float64).copy(), float(r_b), "chamfer", fade,
                                   float(r_c)))
 
-    if not 0.0 <= full_ends <= 1.0:
-        raise ValueError(f"full_ends must be in [0, 1]; got {full_ends}")
     if whole_ends and rng.random() < 0.5:
         axis = int(np.argmax(ext)) if rng.random() < 0.7 else int(rng.integers(3))  # mostly an end of the length
         by = int(rng.choice([a for a in range(3) if a != axis]))
