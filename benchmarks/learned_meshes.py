@@ -1,7 +1,7 @@
 """Checkpoints compared where it counts: never-seen parts meshed through the learned polycube.
 
     python benchmarks/learned_meshes.py --checkpoints A.pt B.pt [--names a b] [--sets mixed:61 mixed:67] \\
-        [--count 16] [--workers 2] [--json benchmarks/results/learned_meshes.json]
+        [--count 16] [--workers 2] [--draws default default] [--json benchmarks/results/learned_meshes.json]
 
 Builds the never-seen parts of ``benchmarks/unseen_parts.py`` (``family:seed``, ``--count`` each) once,
 then meshes every part with every checkpoint through the learned source alone, exactly as
@@ -12,6 +12,11 @@ is the baseline: the table gives each checkpoint's count, the parts it gains and
 baseline, and its seconds (same run, same machine).  ``--workers`` runs the (checkpoint, part) jobs in
 that many processes (one thread each).  The held-out figure (``python -m polycubenet.evaluate``) is read
 on synthetic pairs; this one is read on machined-style parts the model never saw, the issue's target.
+
+``--draws`` gives each arm (one per ``--checkpoints`` entry; repeat a checkpoint to compare tables) its own table
+of the model's further draws instead of ``polycubenet.policy.LEARNED_DRAWS`` (``default``): entries
+``STEPS/SEED/FALLBACKS/TURN`` joined by commas, FALLBACKS ``y``/``n``, TURN ``x``, ``y``, ``z`` or ``-`` (none),
+e.g. ``4/0/n/-,1/1/y/-`` (the table before session 36) against ``default``.
 """
 
 from __future__ import annotations
@@ -28,47 +33,52 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
-def _job(args: tuple[str, str, int]) -> tuple[str, str, list]:
-    checkpoint, path, steps = args
+def _job(args: tuple[int, str, str, int, tuple | None]) -> tuple[int, str, list]:
+    arm, checkpoint, path, steps, draws = args
     import torch
 
     torch.set_num_threads(1)
     from unseen_parts import mesh_learned
 
-    ((name, row),) = mesh_learned([Path(path)], checkpoint, steps).items()
-    return checkpoint, name, list(row)
+    ((name, row),) = mesh_learned([Path(path)], checkpoint, steps, draws=draws).items()
+    return arm, name, list(row)
 
 
-def compare(checkpoints: list[str], parts: list[Path], workers: int = 1) -> dict[str, dict[str, list]]:
-    """checkpoint -> part name -> :func:`unseen_parts.mesh_learned`'s row, every checkpoint at its own
-    default steps."""
+def compare(checkpoints: list[str], parts: list[Path], workers: int = 1,
+            draws: list[tuple | None] | None = None) -> list[dict[str, list]]:
+    """Per arm (a checkpoint, with its table of further draws from ``draws``: None for the policy's) part
+    name -> :func:`unseen_parts.mesh_learned`'s row, every checkpoint at its own default steps."""
     from polycubenet.inference import resolve_steps
 
-    jobs = [(ck, str(p), int(resolve_steps(None, "cpu", ck)[1])) for ck in checkpoints for p in parts]
-    out: dict[str, dict[str, list]] = {ck: {} for ck in checkpoints}
+    draws = draws or [None] * len(checkpoints)
+    jobs = [(i, ck, str(p), int(resolve_steps(None, "cpu", ck)[1]), draws[i]) for i, ck in enumerate(checkpoints)
+            for p in parts]
+    out: list[dict[str, list]] = [{} for _ in checkpoints]
     with ProcessPoolExecutor(max(1, workers)) as pool:
         results = pool.map(_job, jobs) if workers > 1 else map(_job, jobs)
-        for done, (ck, name, row) in enumerate(results, 1):
-            out[ck][name] = row
-            print(f"[{done}/{len(jobs)}] {Path(ck).name} {name}: {'meshed' if row[0] else 'not meshed'} "
-                  f"({row[3]} s)", flush=True)
+        for done, (arm, name, row) in enumerate(results, 1):
+            out[arm][name] = row
+            print(f"[{done}/{len(jobs)}] {Path(checkpoints[arm]).name} (arm {arm + 1}) {name}: "
+                  f"{'meshed' if row[0] else 'not meshed'} ({row[3]} s)", flush=True)
     return out
 
 
-def summary(names: list[str], checkpoints: list[str], result: dict[str, dict[str, list]]) -> list[dict]:
-    """One row per checkpoint: meshed count, gained / lost parts against the first, seconds."""
-    base = {k for k, v in result[checkpoints[0]].items() if v[0]}
+def summary(names: list[str], checkpoints: list[str], result: list[dict[str, list]],
+            draws: list[str] | None = None) -> list[dict]:
+    """One row per arm: meshed count, gained / lost parts against the first, seconds."""
+    base = {k for k, v in result[0].items() if v[0]}
     rows = []
-    for name, ck in zip(names, checkpoints):
-        ok = {k for k, v in result[ck].items() if v[0]}
-        rows.append({"name": name, "checkpoint": ck, "meshed": len(ok), "parts": len(result[ck]),
+    for i, (name, ck) in enumerate(zip(names, checkpoints)):
+        ok = {k for k, v in result[i].items() if v[0]}
+        rows.append({"name": name, "checkpoint": ck, "draws": (draws or ["default"] * len(names))[i],
+                     "meshed": len(ok), "parts": len(result[i]),
                      "gained": sorted(ok - base), "lost": sorted(base - ok),
-                     "seconds": round(sum(v[3] for v in result[ck].values()), 1)})
+                     "seconds": round(sum(v[3] for v in result[i].values()), 1)})
     return rows
 
 
 def main(argv=None) -> int:
-    from unseen_parts import make_parts
+    from unseen_parts import make_parts, parse_draws
 
     from polycubenet.atomic import write_json
 
@@ -79,25 +89,33 @@ def main(argv=None) -> int:
                     help="family:seed of benchmarks/unseen_parts.py (default: the dev sets, used for no reported figure)")
     ap.add_argument("--count", type=int, default=16, help="parts per set")
     ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--draws", nargs="+", default=None,
+                    help="one table of further draws per checkpoint (see above; default: the policy's)")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/learned_meshes.json"))
     args = ap.parse_args(argv)
     names = args.names or [Path(c).stem for c in args.checkpoints]
-    if len(names) != len(args.checkpoints):
-        ap.error("--names needs one name per checkpoint")
+    if len(names) != len(args.checkpoints) or len(set(names)) != len(names):
+        ap.error("--names needs one distinct name per checkpoint")
+    if args.draws is not None and len(args.draws) != len(args.checkpoints):
+        ap.error("--draws needs one table per checkpoint")
+    try:
+        tables = [parse_draws(d) for d in args.draws] if args.draws else None
+    except ValueError as exc:
+        ap.error(str(exc))
     t0 = time.perf_counter()
     folder = Path(tempfile.mkdtemp(prefix="learned-meshes-"))
     parts = []
     for s in args.sets:
         family, seed = s.split(":")
         parts += [p for p, _ in make_parts(folder, args.count, int(seed), family)]
-    result = compare(args.checkpoints, parts, args.workers)
-    rows = summary(names, args.checkpoints, result)
-    print(f"\n{'checkpoint':<16} {'meshed':>9} {'seconds':>8}  gained / lost against {names[0]}")
+    result = compare(args.checkpoints, parts, args.workers, tables)
+    rows = summary(names, args.checkpoints, result, args.draws)
+    print(f"\n{'arm':<16} {'meshed':>9} {'seconds':>8}  gained / lost against {names[0]}")
     for r in rows:
         print(f"{r['name']:<16} {r['meshed']:>4} / {r['parts']:<3} {r['seconds']:>8}  +{len(r['gained'])} "
               f"{' '.join(r['gained'])} / -{len(r['lost'])} {' '.join(r['lost'])}")
     write_json(args.json, {"sets": args.sets, "count": args.count, "summary": rows,
-                           "rows": {n: result[ck] for n, ck in zip(names, args.checkpoints)},
+                           "rows": dict(zip(names, result)),
                            "seconds": round(time.perf_counter() - t0, 1)})
     print(f"wrote {args.json}")
     return 0

@@ -1,7 +1,7 @@
 """Parts the project has never seen: how often is the learned polycube accepted on them?
 
     python benchmarks/unseen_parts.py [--count 16] [--seed 7] [--family blocks|mixed|machined] [--mesh] \\
-        [--json benchmarks/results/unseen_parts.json]
+        [--draws default] [--json benchmarks/results/unseen_parts.json]
     python benchmarks/unseen_parts.py --count 16 --seed 61 --family mixed --make-only DIR   # the STEP files only
 
 Builds ``--count`` new CAD-like parts with gmsh's OpenCASCADE kernel, each from its own seed
@@ -162,8 +162,24 @@ def meets_bars(r, cfg) -> bool:
                 and (cfg.min_sj is None or (q.sj_min is not None and q.sj_min >= cfg.min_sj)))
 
 
+def parse_draws(text: str) -> tuple | None:
+    """A ``--draws`` table of the model's further draws: None for ``default`` (the policy's
+    ``LEARNED_DRAWS``), else ``LEARNED_DRAWS``-shaped tuples from entries ``STEPS/SEED/FALLBACKS/TURN``
+    joined by commas (FALLBACKS ``y``/``n``; TURN ``x``, ``y``, ``z`` or ``-`` for none)."""
+    if text == "default":
+        return None
+    table = []
+    for entry in text.split(","):
+        fields = entry.split("/")
+        if len(fields) != 4 or fields[2] not in ("y", "n") or fields[3] not in ("x", "y", "z", "-"):
+            raise ValueError(f"bad --draws entry {entry!r}: expected STEPS/SEED/y|n/x|y|z|-")
+        table.append((int(fields[0]), int(fields[1]), fields[2] == "y", None if fields[3] == "-" else fields[3]))
+    return tuple(table)
+
+
 def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int = 0,
-                 learned_maps: tuple[str, ...] | None = None, snap_planes: float | str | None = "default") -> dict:
+                 learned_maps: tuple[str, ...] | None = None, snap_planes: float | str | None = "default",
+                 draws: tuple | None = None) -> dict:
     """Mesh through the learned source only (``--polycube learned``: the first draw at ``steps``,
     then the model's further draws, ``polycubenet.policy.LEARNED_DRAWS``; no classical fallback), as
     ``mesh_part`` does: name -> (valid, faithful and at least the quality bar ``min_sj``, SJ min,
@@ -172,10 +188,20 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
     ``exact (realised)``, :func:`polycubenet.pipeline.pull_back_learned`).  ``draw_seed``: the model's noise
     seed (``ModelSource(seed=...)``; 0 as the pipeline runs it), to see what other draws would give.
     ``learned_maps``: ``PipelineConfig.learned_maps`` (None: the default, the registration alone).
-    ``snap_planes``: ``PipelineConfig.snap_planes`` (``"default"``: the pipeline's; None: off)."""
+    ``snap_planes``: ``PipelineConfig.snap_planes`` (``"default"``: the pipeline's; None: off).
+    ``draws``: the model's further draws (:func:`parse_draws`; None: ``policy.LEARNED_DRAWS``)."""
+    from polycubenet import policy
     from polycubenet.inference import ModelSource
     from polycubenet.pipeline import PipelineConfig, mesh_part
     from polycubenet.policy import refinement
+
+    if draws is not None:  # the policy's table for these parts only
+        saved = policy.LEARNED_DRAWS
+        policy.LEARNED_DRAWS = draws
+        try:
+            return mesh_learned(paths, checkpoint, steps, draw_seed, learned_maps, snap_planes)
+        finally:
+            policy.LEARNED_DRAWS = saved
 
     res = {}
     cfg = PipelineConfig(polycube="learned", target_hexes=3000)
@@ -224,10 +250,17 @@ def main(argv=None) -> int:
     ap.add_argument("--snap-planes", default="default", metavar="DEG|off",
                     help="PipelineConfig.snap_planes: each planar part face tilted at least DEG from its label's axis "
                          "onto one plane in the learned cloud; off: never (default: the pipeline's)")
+    ap.add_argument("--draws", default="default",
+                    help="with --mesh: the model's further draws after the first, entries STEPS/SEED/FALLBACKS/TURN "
+                         "joined by commas (e.g. 4/0/n/-,1/1/y/z; default: policy.LEARNED_DRAWS)")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/unseen_parts.json"))
     ap.add_argument("--make-only", metavar="DIR", help="only write the parts as STEP files into DIR and stop (no model): "
                     "a folder for `polycubenet mesh` or benchmarks/bench_auto_cost.py --parts")
     args = ap.parse_args(argv)
+    try:
+        draws = parse_draws(args.draws)
+    except ValueError as exc:
+        ap.error(str(exc))
     if args.make_only:
         Path(args.make_only).mkdir(parents=True, exist_ok=True)
         for p, desc in make_parts(Path(args.make_only), args.count, args.seed, args.family):
@@ -248,8 +281,9 @@ def main(argv=None) -> int:
     if args.snap_planes != "default":
         args.snap_planes = None if args.snap_planes == "off" else float(args.snap_planes)
     meshed = mesh_learned([p for p, _ in made], args.checkpoint, args.steps, args.draw_seed, maps,
-                          args.snap_planes) if args.mesh else {}
-    ex_meshed = mesh_learned(examples, args.checkpoint, args.steps, args.draw_seed, maps, args.snap_planes) if args.mesh else {}
+                          args.snap_planes, draws) if args.mesh else {}
+    ex_meshed = mesh_learned(examples, args.checkpoint, args.steps, args.draw_seed, maps, args.snap_planes,
+                             draws) if args.mesh else {}
     ex_rows, _ = part_rows(args.checkpoint, examples, 4096, args.steps)
     print(f"\n{'part':<18} {'genus':>5} {'first draw':<28} {'learned mesh: SJ, Hausdorff':<28} shape")
     for r in rows:
@@ -273,7 +307,7 @@ def main(argv=None) -> int:
               f"({u1} by the first draw, {ur} realised exactly), examples {e}/{len(examples)} ({e1} by the first "
               f"draw, {er} realised exactly)")
     write_json(args.json, {"checkpoint": args.checkpoint, "snap_planes": args.snap_planes, "seed": args.seed, "family": args.family, "count": len(rows), "steps": args.steps,
-                           "draw_seed": args.draw_seed, "learned_maps": maps,
+                           "draw_seed": args.draw_seed, "learned_maps": maps, "draws": args.draws,
                            "accepted": acc, "examples_accepted": ex_acc, "examples": len(ex_rows),
                            "meshed_valid": counts(meshed)[1] if meshed else None,
                            "meshed_first_draw": counts(meshed)[0] if meshed else None,

@@ -34,6 +34,12 @@ DEFAULT_STEPS_CPU = 32  # DDIM steps when running on a CPU (stride 4 = 256 steps
 #: cache and the streaming read gets slower per point (measured by benchmarks/bench_inference.py)
 MAX_CHUNK = 8192
 
+#: the half-turns about the canonical axes (:mod:`polycubenet.frame`), which a further draw of the model may
+#: apply to the part before generating (:attr:`ModelSource.turn`, :data:`polycubenet.policy.LEARNED_DRAWS`): each
+#: keeps the axes, and with them the bounding-box extents' order, so the turned part is in a canonical frame up to
+#: the frame's sign convention, and the cloud is turned back exactly
+TURNS = {"x": np.diag([1.0, -1.0, -1.0]), "y": np.diag([-1.0, 1.0, -1.0]), "z": np.diag([-1.0, -1.0, 1.0])}
+
 _CACHE: dict = {}
 
 
@@ -234,11 +240,15 @@ class ModelSource:
 
     ``source(sample, V, F, config)`` generates ``config.n_learned`` points conditioned on the
     part's sample and returns a :class:`PolycubeCloud` with ``meta["provenance"] == "learned"``.
+    With ``turn`` (a key of :data:`TURNS`) the model sees the part (samples and anchors) turned a
+    half-turn about that axis, and the generated cloud is turned back: another view of the same part.
     """
 
     def __init__(self, model: str | Path | Loaded | None = None, steps: int | None = None, seed: int = 0,
-                 device: str | None = None):
-        self.model, self.steps, self.seed, self.device = model, steps, seed, device
+                 device: str | None = None, turn: str | None = None):
+        if turn is not None and turn not in TURNS:
+            raise ValueError(f"unknown turn {turn!r}; expected one of {sorted(TURNS)} or None")
+        self.model, self.steps, self.seed, self.device, self.turn = model, steps, seed, device, turn
 
     def further_draws(self) -> tuple[int, ...]:
         """The ``K`` of the model's further draws ``learned+K`` after this source's own
@@ -249,12 +259,13 @@ class ModelSource:
 
     def draw_source(self, k: int) -> "ModelSource":
         """The source of the further draw ``learned+k``: the same model and device, at that draw's
-        steps and seed offset (:data:`polycubenet.policy.LEARNED_DRAWS`) from this source's."""
-        from .policy import draw_seed, draw_steps
+        steps, seed offset and turn (:data:`polycubenet.policy.LEARNED_DRAWS`) from this source's."""
+        from .policy import draw_seed, draw_steps, draw_turn
 
         name = f"learned+{int(k)}"
         steps = draw_steps(name, resolve_steps(self.steps, self.device, self.model)[1])
-        return ModelSource(self.model, steps=steps, seed=self.seed + draw_seed(name), device=self.device)
+        return ModelSource(self.model, steps=steps, seed=self.seed + draw_seed(name), device=self.device,
+                           turn=draw_turn(name))
 
     def __call__(self, sample, V, F, config) -> PolycubeCloud:
         loaded = load_model(self.model, self.device)
@@ -262,15 +273,24 @@ class ModelSource:
         seed = self.seed + config.seed
         n = int(getattr(config, "n_learned", None) or config.n_polycube)
         a = model_anchors(loaded, V, F, n, seed)
-        anchors = None if a is None else [a]
-        (cloud,) = generate([sample.points], n, model=loaded, steps=self.steps,
+        cond, anchors = sample.points, None if a is None else [a]
+        if self.turn:  # the part turned (points, and normals alike), the cloud turned back
+            R = TURNS[self.turn]  # a signed diagonal: its own inverse and transpose
+            cond = np.asarray(cond, np.float64) @ R
+            if a is not None:
+                anchors = [np.hstack([a[:, i:i + 3] @ R for i in range(0, a.shape[1], 3)]).astype(np.float32)]
+        (cloud,) = generate([cond], n, model=loaded, steps=self.steps,
                             seed=seed, device=self.device, anchors=anchors)
+        if self.turn:
+            cloud = np.hstack([cloud[:, :3] @ R, cloud[:, 3:6] @ R])
         meta = {
             "provenance": "learned",
             "checkpoint": str(loaded.path.name if loaded.path else "memory"),
             "steps": resolve_steps(self.steps, self.device, loaded)[1],
             "seconds": round(time.perf_counter() - t0, 3),
         }
+        if self.turn:
+            meta["turn"] = self.turn
         return PolycubeCloud(cloud[:, :3].astype(np.float64), cloud[:, 3:].astype(np.float64), meta=meta,
                              anchors=None if a is None else a[:, :3].astype(np.float64),
                              anchor_normals=None if a is None or a.shape[1] < 6 else a[:, 3:6].astype(np.float64))

@@ -68,7 +68,7 @@ from .errors import PartError, PolycubeError
 MODES = ("auto", "learned", "classical", "voxel")
 #: finer voxel polycubes after the first one (``voxel+1`` ... ``voxel+3``)
 VOXEL_REFINEMENTS = 3
-#: the model's further draws after its first, in order: ``(DDIM steps, seed offset, generator fallbacks)`` of
+#: the model's further draws after its first, in order: ``(DDIM steps, seed offset, generator fallbacks, turn)`` of
 #: ``learned+1``, ``learned+2``, ...  (a draw never uses fewer steps than the first; one that would repeat the
 #: first is skipped, :func:`learned_draws`; the fallbacks: :func:`extraction_config`).  Measured on never-seen
 #: parts meshed valid, faithful and >= 0.2 through the learned source (of 16, ``benchmarks/unseen_parts.py
@@ -78,8 +78,15 @@ VOXEL_REFINEMENTS = 3
 #: figure; the shipped file): 1 step at seeds +0/+1/+2 with the fallbacks 12/12/13, 4 steps without them at
 #: seeds +0/+1/+2 13/6/9; in order, 1:+0 then 4:+0 15 (401 s learned-only), then 1 step at seed +1 with the
 #: fallbacks 17 (575 s), then 4:+2 18 (647 s), nothing more from 4:+1 or 1:+2 (``benchmarks/results/
-#: dev_draws_s18.json``): the third draw kept, the fourth not (+1 of 32 for 72 s)
-LEARNED_DRAWS = ((4, 0, False), (1, 1, True))
+#: dev_draws_s18.json``): the third draw kept, the fourth not (+1 of 32 for 72 s).  The turn: None, or the canonical
+#: axis the part is turned a half-turn about before the model sees it, the cloud turned back
+#: (:data:`polycubenet.inference.TURNS`): another view of the part for a model that is not equivariant.  Session 36,
+#: the third draw turned (``benchmarks/learned_meshes.py --draws``, ``benchmarks/unseen_parts.py --draws``): on the
+#: dev sets (machined 61 + 67, the 71.93 h continue file) turned about z it meshes 2 of the 16 parts the unturned
+#: draws leave (``benchmarks/results/dev_draws_s36.json``), but on the never-seen machined
+#: sets 11, 31, 53, 103 (the shipped file) 34 of 64 against 35 (+0, -1) and on the examples 9 of 10 against 8
+#: (bushing; ``benchmarks/results/turned_draws_s36.json``): no better than another seed, not kept
+LEARNED_DRAWS = ((4, 0, False, None), (1, 1, True, None))
 #: the very last source, ``voxel+3*``: the finest voxel polycube partitioned into this many times the hexes
 DENSER_HEXES = 1.5
 
@@ -106,6 +113,15 @@ def draw_seed(source: str) -> int:
     return LEARNED_DRAWS[k - 1][1] if k else 0
 
 
+def draw_turn(source: str) -> str | None:
+    """The axis a learned source's draw turns the part a half-turn about before the model sees it
+    (:data:`polycubenet.inference.TURNS`): None for ``learned`` and for a further draw whose
+    :data:`LEARNED_DRAWS` entry has no turn."""
+    k = refinement(source)[1]
+    entry = LEARNED_DRAWS[k - 1] if k else ()
+    return entry[3] if len(entry) > 3 else None
+
+
 def draw_fallbacks(source: str) -> bool:
     """Whether a learned source's draw is extracted with the generator fallbacks: always the first draw
     (``learned``), a further draw when its :data:`LEARNED_DRAWS` entry says so."""
@@ -115,12 +131,13 @@ def draw_fallbacks(source: str) -> bool:
 
 def learned_draws(steps) -> tuple[int, ...]:
     """The further draws ``K`` (sources ``learned+K``) after a first draw at ``steps``: every entry
-    of :data:`LEARNED_DRAWS` that would not repeat the first draw (same steps, seed offset 0); none
+    of :data:`LEARNED_DRAWS` that would not repeat the first draw (same steps, seed offset 0, no turn); none
     after a first draw at a schedule that is not a step count (the GPU's ``"stride4"``)."""
     if not _int_steps(steps):
         return ()
     return tuple(k for k in range(1, len(LEARNED_DRAWS) + 1)
-                 if (draw_steps(f"learned+{k}", steps), draw_seed(f"learned+{k}")) != (int(steps), 0))
+                 if (draw_steps(f"learned+{k}", steps), draw_seed(f"learned+{k}"), draw_turn(f"learned+{k}"))
+                 != (int(steps), 0, None))
 
 
 def refinement(source: str) -> tuple[str, int]:
@@ -166,12 +183,14 @@ def extraction_config(source: str, config):
 def source_label(source: str) -> str:
     """How reasons name a source: ``voxel+2`` is "voxel (refinement 2)", ``voxel+3*``
     "voxel (refinement 3, 1.5x hexes)", ``learned+1`` "learned (draw 2, 4 steps)", a draw with another seed
-    "learned (draw 3, 4 steps, seed +1)" (the steps of :data:`LEARNED_DRAWS`; a run at more steps draws at its own)."""
+    "learned (draw 3, 4 steps, seed +1)", a turned one "learned (draw 3, 1 step, seed +1, turned about z)" (the
+    steps of :data:`LEARNED_DRAWS`; a run at more steps draws at its own)."""
     base, k = refinement(source)
     if base == "learned" and k:
         seed = f", seed +{draw_seed(source)}" if draw_seed(source) else ""
+        turn = f", turned about {draw_turn(source)}" if draw_turn(source) else ""
         n = LEARNED_DRAWS[k - 1][0]
-        return f"learned (draw {k + 1}, {n} step{'s' if n != 1 else ''}{seed})"
+        return f"learned (draw {k + 1}, {n} step{'s' if n != 1 else ''}{seed}{turn})"
     if denser(source):
         return f"{base} (refinement {k}, {DENSER_HEXES:g}x hexes)"
     return f"{base} (refinement {k})" if k else source

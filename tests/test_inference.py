@@ -260,3 +260,47 @@ def test_model_source_further_draws_and_their_place_in_the_chain(ckpt, monkeypat
         "learned", "learned+1", "learned+2", "learned+3"]
     # an injected source without a second draw (a test's fake, the oracle) is used alone
     assert [n for n, _ in source_chain(lambda *a: None, PipelineConfig(polycube="learned"))] == ["learned"]
+    # the table's turn goes with the draw, in the pipeline and in the flow's sources, and into the flow's cache key
+    from polycubenet import library
+
+    monkeypatch.setattr(policy, "LEARNED_DRAWS", ((1, 1, True, "y"), (4, 1, True, None)))
+    assert src.draw_source(1).turn == "y" and src.turn is None and src.draw_source(2).turn is None
+    assert library.make_source("learned+1", "p.stl", None, checkpoint=ckpt, steps=1, device="cpu").turn == "y"
+    keys = [library.source_extra(f"learned+{k}", "p.stl", ckpt, steps=1, device="cpu") for k in (1, 2)]
+    assert keys[0]["turn"] == "y" and "turn" not in keys[1] and keys[0]["seed"] == keys[1]["seed"] == 1
+
+
+def test_a_turned_draw_is_the_turned_part_drawn_and_turned_back(tmp_path):
+    """``ModelSource(turn=...)``: the model sees the part's samples and anchors (points and their
+    normals) turned a half-turn about the axis, and the cloud comes back turned the other way, with
+    the unturned anchors; turning does change what the model draws."""
+    import dataclasses
+
+    from polycubenet.inference import TURNS, model_anchors
+
+    torch.manual_seed(2)
+    net = PolycubeNet(dataclasses.replace(preset("tiny"), anchored=True, anchor_normals=True))
+    with torch.no_grad():
+        torch.nn.init.normal_(net.denoiser.out.weight, std=0.2)
+    path = save_checkpoint(tmp_path / "tiny-normals.pt", {
+        "kind": "published", "model_config": net.config.to_dict(),
+        "diffusion": Diffusion(prediction="v", schedule="cosine_ztsnr").to_dict(), "ema": net.state_dict()})
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float) - 0.3
+    F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    config = PipelineConfig(n_learned=60, seed=3)
+    sample = types.SimpleNamespace(points=_cloud(90, 31).astype(np.float64))
+    plain = ModelSource(path, steps=2, device="cpu")(sample, V, F, config)
+    turned = ModelSource(path, steps=2, device="cpu", turn="z")(sample, V, F, config)
+    R = TURNS["z"]
+    a = model_anchors(load_model(path, "cpu"), V, F, 60, 3)
+    assert a.shape == (60, 6)
+    aR = np.hstack([a[:, :3] @ R, a[:, 3:] @ R]).astype(np.float32)
+    (raw,) = generate([sample.points @ R], 60, model=path, steps=2, seed=3, device="cpu", anchors=[aR])
+    np.testing.assert_allclose(turned.points, raw[:, :3] @ R, atol=1e-6)
+    np.testing.assert_allclose(turned.normals, raw[:, 3:] @ R, atol=1e-6)
+    np.testing.assert_allclose(turned.anchors, plain.anchors)
+    np.testing.assert_allclose(turned.anchor_normals, a[:, 3:])
+    assert turned.meta["turn"] == "z" and "turn" not in plain.meta
+    assert np.abs(turned.points - plain.points).max() > 1e-4
+    with pytest.raises(ValueError, match="unknown turn"):
+        ModelSource(path, turn="w")

@@ -5,7 +5,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
+import pytest  # noqa: E402
 from learned_meshes import summary  # noqa: E402
+from unseen_parts import parse_draws  # noqa: E402
 
 
 def _row(ok, seconds):
@@ -13,12 +15,25 @@ def _row(ok, seconds):
 
 
 def test_summary_counts_gains_and_losses_against_the_first_checkpoint():
-    result = {
-        "base.pt": {"a": _row(True, 1.0), "b": _row(True, 2.0), "c": _row(False, 3.0)},
-        "new.pt": {"a": _row(True, 1.5), "b": _row(False, 2.5), "c": _row(True, 3.5)},
-    }
-    rows = summary(["base", "new"], ["base.pt", "new.pt"], result)
+    # one arm per entry: the same checkpoint may come twice (with two tables of draws)
+    result = [
+        {"a": _row(True, 1.0), "b": _row(True, 2.0), "c": _row(False, 3.0)},
+        {"a": _row(True, 1.5), "b": _row(False, 2.5), "c": _row(True, 3.5)},
+    ]
+    rows = summary(["base", "new"], ["same.pt", "same.pt"], result, ["4/0/n/-,1/1/y/-", "default"])
     assert [(r["name"], r["meshed"], r["parts"]) for r in rows] == [("base", 2, 3), ("new", 2, 3)]
     assert rows[0]["gained"] == [] and rows[0]["lost"] == []
     assert rows[1]["gained"] == ["c"] and rows[1]["lost"] == ["b"]
     assert rows[1]["seconds"] == 7.5
+    assert [r["draws"] for r in rows] == ["4/0/n/-,1/1/y/-", "default"]
+
+
+def test_draw_tables_parse_like_the_policys():
+    from polycubenet.policy import LEARNED_DRAWS
+
+    assert parse_draws("default") is None
+    assert parse_draws("4/0/n/-,1/1/y/-") == LEARNED_DRAWS == ((4, 0, False, None), (1, 1, True, None))
+    assert parse_draws("1/1/y/z") == ((1, 1, True, "z"),)
+    for bad in ("4/0/n", "4/0/maybe/-", "4/0/n/w", "4/0/n/-/1"):
+        with pytest.raises(ValueError):
+            parse_draws(bad)

@@ -7,7 +7,7 @@ import pytest
 
 from polycubenet.errors import PartError, PolycubeError
 from polycubenet import policy
-from polycubenet.policy import (LEARNED_DRAWS, Attempt, draw_fallbacks, draw_seed, draw_steps, learned_draws, leaves_source, refinement, run_chain,
+from polycubenet.policy import (LEARNED_DRAWS, Attempt, draw_fallbacks, draw_seed, draw_steps, draw_turn, learned_draws, leaves_source, refinement, run_chain,
                                 source_label, source_names)
 
 
@@ -80,10 +80,16 @@ def test_the_models_further_draws_follow_the_first(monkeypatch):
     # the shipped table: a 4-step draw after a cheaper first, then a one-step draw at another seed; after a
     # first draw at 4 steps only that one (at 4 steps: never fewer than the first), the 4-step draw at seed +0
     # would repeat the first
-    assert LEARNED_DRAWS == ((4, 0, False), (1, 1, True))
+    assert LEARNED_DRAWS == ((4, 0, False, None), (1, 1, True, None))
     assert learned_draws(1) == (1, 2) and learned_draws(4) == (2,) == learned_draws(8)
     assert [draw_fallbacks(s) for s in ("learned", "learned+1", "learned+2")] == [True, False, True]
     assert source_label("learned+2") == "learned (draw 3, 1 step, seed +1)"
+    # a draw of the part turned (measured in session 36, not in the table): named so, and at the first's steps
+    # and seed it is not a repeat of the first
+    monkeypatch.setattr(policy, "LEARNED_DRAWS", ((1, 0, True, "x"), (1, 0, True, None), (1, 1, True, "z")))
+    assert [draw_turn(s) for s in ("learned", "learned+1", "learned+2", "learned+3")] == [None, "x", None, "z"]
+    assert learned_draws(1) == (1, 3) and source_label("learned+1") == "learned (draw 2, 1 step, turned about x)"
+    assert source_label("learned+3") == "learned (draw 4, 1 step, seed +1, turned about z)"
     # a longer table: never with fewer steps than the first, never repeating the first
     monkeypatch.setattr(policy, "LEARNED_DRAWS", ((4, 0, False), (4, 1, False), (4, 2, False)))
     assert learned_draws(1) == (1, 2, 3) and learned_draws(4) == (2, 3) and learned_draws("stride4") == ()
