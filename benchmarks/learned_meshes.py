@@ -16,7 +16,7 @@ on synthetic pairs; this one is read on machined-style parts the model never saw
 ``--draws`` gives each arm (one per ``--checkpoints`` entry; repeat a checkpoint to compare tables) its own table
 of the model's further draws instead of ``polycubenet.policy.LEARNED_DRAWS`` (``default``): entries
 ``STEPS/SEED/FALLBACKS/TURN`` joined by commas, FALLBACKS ``y``/``n``, TURN ``x``, ``y``, ``z`` or ``-`` (none),
-e.g. ``4/0/n/-,1/1/y/-`` (the table before session 36) against ``default``.
+e.g. ``default`` against ``4/0/n/-,1/1/y/z`` (the policy's third draw turned about z; session 36).
 """
 
 from __future__ import annotations
