@@ -1,6 +1,6 @@
 """Parts the project has never seen: how often is the learned polycube accepted on them?
 
-    python benchmarks/unseen_parts.py [--count 16] [--seed 7] [--family blocks|mixed|machined] [--mesh] \\
+    python benchmarks/unseen_parts.py [--count 16] [--seed 7] [--family blocks|mixed|machined] [--mesh] [--anchors even] \\
         [--draws default] [--json benchmarks/results/unseen_parts.json]
     python benchmarks/unseen_parts.py --count 16 --seed 61 --family mixed --make-only DIR   # the STEP files only
 
@@ -177,6 +177,21 @@ def parse_draws(text: str) -> tuple | None:
     return tuple(table)
 
 
+def use_even_anchors() -> None:
+    """For this process: the model's anchors drawn as a Poisson-disk sample of the part (blue noise, as
+    the model's training anchors and the held-out pairs' are spread) instead of the pipeline's
+    independent area-uniform samples (:func:`polycubenet.inference.part_anchors`), for both the first-draw
+    rows and ``--mesh``.  A measurement, not a pipeline setting: the flow's cache key does not know it."""
+    from polycubenet import inference
+    from polycubenet.sampling import poisson_disk
+
+    def even(V, F, n, seed=0, normals=False):
+        s = poisson_disk(np.asarray(V, float), np.asarray(F), int(n), seed=seed)
+        return (np.hstack([s.points, s.normals]) if normals else s.points).astype(np.float32)
+
+    inference.part_anchors = even
+
+
 def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int = 0,
                  learned_maps: tuple[str, ...] | None = None, snap_planes: float | str | None = "default",
                  draws: tuple | None = None) -> dict:
@@ -253,6 +268,10 @@ def main(argv=None) -> int:
     ap.add_argument("--draws", default="default",
                     help="with --mesh: the model's further draws after the first, entries STEPS/SEED/FALLBACKS/TURN "
                          "joined by commas (e.g. 4/0/n/-,1/1/y/z; default: policy.LEARNED_DRAWS)")
+    ap.add_argument("--anchors", choices=("uniform", "even"), default="uniform",
+                    help="how the model's anchors are drawn on the part: uniform (the pipeline's: independent "
+                         "area-uniform samples) or even (Poisson-disk, blue noise; session 37's measurement, "
+                         "see use_even_anchors)")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/unseen_parts.json"))
     ap.add_argument("--make-only", metavar="DIR", help="only write the parts as STEP files into DIR and stop (no model): "
                     "a folder for `polycubenet mesh` or benchmarks/bench_auto_cost.py --parts")
@@ -268,6 +287,8 @@ def main(argv=None) -> int:
         return 0
     from polycubenet.inference import resolve_steps
 
+    if args.anchors == "even":
+        use_even_anchors()
     args.steps = int(resolve_steps(args.steps, "cpu", args.checkpoint)[1])
     t0 = time.perf_counter()
     folder = Path(tempfile.mkdtemp(prefix="unseen-parts-"))
