@@ -43,3 +43,25 @@ def test_an_unknown_family_is_refused():
 
     with pytest.raises(ValueError, match="family must be one of"):
         unseen_parts.build_part(None, np.random.default_rng(0), "round")
+
+
+def test_even_anchors_are_spread_evenly_where_the_pipeline_draws_them_independently(monkeypatch):
+    """``--anchors even`` (:func:`unseen_parts.use_even_anchors`) replaces the model's anchors, for every
+    caller of ``inference.model_anchors``, by a Poisson-disk sample: its closest pair of anchors is far
+    further apart than among the pipeline's independent samples of the same part, with the same count,
+    the normals alongside, and the same function of the seed."""
+    import trimesh
+
+    from polycubenet import inference
+    from polycubenet.sampling import min_spacing
+
+    box = trimesh.creation.box(extents=(1.0, 0.6, 0.3))
+    V, F = np.asarray(box.vertices, float), np.asarray(box.faces)
+    uniform = inference.part_anchors(V, F, 1024, seed=3, normals=True)
+    monkeypatch.setattr(inference, "part_anchors", inference.part_anchors)  # restored after the test
+    unseen_parts.use_even_anchors()
+    even = inference.part_anchors(V, F, 1024, seed=3, normals=True)
+    assert even.shape == uniform.shape == (1024, 6)
+    np.testing.assert_allclose(np.linalg.norm(even[:, 3:], axis=1), 1.0, atol=1e-5)
+    assert min_spacing(even[:, :3]) > 3 * min_spacing(uniform[:, :3])
+    np.testing.assert_array_equal(even, inference.part_anchors(V, F, 1024, seed=3, normals=True))
