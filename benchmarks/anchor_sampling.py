@@ -11,9 +11,10 @@ generated cloud is spread over the polycube as the anchors are spread over the p
 from evenly spread anchors (preimages of a blue-noise sample of the polycube) and the held-out figure
 reads pairs with their Poisson-disk condition points as anchors.  Here every pair of a held-out folder
 sampled densely (``--n-cond 16384``) is drawn once per arm ``ANCHORS:CONDITION:N``: ``N`` anchors chosen
-from the pair's dense points either evenly (``even``: farthest-point order, the analogue of the pipeline's
-Poisson-disk sample of the mesh, which the shards do not store) or independently (``random``: a random
-subset, the statistics of area-uniform samples), the condition ``CONDITION`` points in farthest-point order
+from the pair's dense points either evenly (``even``: the first ``N`` of their farthest-point order,
+:func:`polycubenet.registration.farthest_point_sampling`, the analogue of a Poisson-disk sample of the mesh,
+which the shards do not store) or independently (``random``: a random subset, the statistics of the
+pipeline's area-uniform samples), the condition the first ``CONDITION`` points of that order
 (the condition's spread matters little: a random condition scored as an even one in session 37).  Each
 cloud is read by the extraction against the pair's ground truth (exact structure, as
 ``python -m polycubenet.evaluate``).  Prints one row per arm; writes the JSON (per arm the exact count
@@ -33,19 +34,6 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-def farthest_point_order(P: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
-    """Indices of ``n`` points of ``P`` in farthest-point order from a random first one (each prefix is
-    evenly spread)."""
-    rng = np.random.default_rng(seed)
-    idx = np.empty(n, dtype=np.int64)
-    idx[0] = rng.integers(len(P))
-    d = np.linalg.norm(P - P[idx[0]], axis=1)
-    for i in range(1, n):
-        idx[i] = int(np.argmax(d))
-        d = np.minimum(d, np.linalg.norm(P - P[idx[i]], axis=1))
-    return idx
-
-
 def parse_arms(text: str) -> list[tuple[str, int, int]]:
     arms = []
     for entry in text.split(","):
@@ -60,6 +48,7 @@ def main(argv=None) -> int:
     from polycubenet.atomic import write_json
     from polycubenet.evaluate import _pairs, _structure
     from polycubenet.inference import DEFAULT_CHECKPOINT, generate, load_model
+    from polycubenet.registration import farthest_point_sampling
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True, help="held-out folder sampled densely (--n-cond 16384)")
@@ -81,11 +70,13 @@ def main(argv=None) -> int:
         cp = np.asarray(s["cond_points"][k], np.float32)
         cn = np.asarray(s["cond_normals"][k], np.float32)
         gt, genus = s.polycube(k), int(s["genus"][k])
-        even = farthest_point_order(cp, need, seed=k)
-        even_anchors = farthest_point_order(cp, need, seed=k + 7)  # another start than the condition's
+        # every prefix of a farthest-point order is evenly spread; the condition is its first CONDITION
+        # points and evenly spread anchors its first N, so at N = CONDITION the anchors are the condition's
+        # points, as the held-out figure reads its pairs (python -m polycubenet.evaluate)
+        even = farthest_point_sampling(cp, need)
         random_anchors = np.random.default_rng(k + 7).permutation(len(cp))
         for kind, c, n in arms:
-            ai = (even_anchors if kind == "even" else random_anchors)[:n]
+            ai = (even if kind == "even" else random_anchors)[:n]
             (cloud,) = generate([cp[even[:c]]], n, model=loaded, steps=1, seed=j, device="cpu",
                                 anchors=[np.hstack([cp[ai], cn[ai]])])
             r = _structure(cloud[:, :3].astype(float), cloud[:, 3:].astype(float), gt, genus, f"pair {j}")
