@@ -3,7 +3,7 @@
     python -m polycubenet.synth --out DENSE --count 128 --seed 2 --n-cond 16384 --n-target 16384
     python benchmarks/anchor_sampling.py --data DENSE --count 64 \\
         [--checkpoint polycubenet/checkpoints/polycubenet-cpu-continue.pt] \\
-        [--arms even:2048:2048,random:2048:2048,even:2048:4096,random:4096:4096] \\
+        [--arms random:2048:2048,even:2048:2048,random:2048:4096,even:2048:4096] \\
         [--json benchmarks/results/anchors_s37_heldout.json]
 
 An anchored model moves each anchor (a point of the part, with its normal) onto the polycube, so the
@@ -54,7 +54,7 @@ def main(argv=None) -> int:
     ap.add_argument("--data", required=True, help="held-out folder sampled densely (--n-cond 16384)")
     ap.add_argument("--count", type=int, default=64)
     ap.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT))
-    ap.add_argument("--arms", default="random:2048:2048,even:2048:2048,random:4096:4096,even:2048:4096")
+    ap.add_argument("--arms", default="random:2048:2048,even:2048:2048,random:2048:4096,even:2048:4096")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/anchors_s37_heldout.json"))
     args = ap.parse_args(argv)
 
