@@ -164,16 +164,21 @@ def meets_bars(r, cfg) -> bool:
 
 def parse_draws(text: str) -> tuple | None:
     """A ``--draws`` table of the model's further draws: None for ``default`` (the policy's
-    ``LEARNED_DRAWS``), else ``LEARNED_DRAWS``-shaped tuples from entries ``STEPS/SEED/FALLBACKS/TURN``
-    joined by commas (FALLBACKS ``y``/``n``; TURN ``x``, ``y``, ``z`` or ``-`` for none)."""
+    ``LEARNED_DRAWS``), else ``LEARNED_DRAWS``-shaped tuples from entries ``STEPS/SEED/FALLBACKS/TURN[/ANCHORS]``
+    joined by commas (FALLBACKS ``y``/``n``; TURN ``x``, ``y``, ``z`` or ``-`` for none; ANCHORS ``uniform``
+    (the default) or ``even``, :data:`polycubenet.inference.ANCHOR_SPREADS`)."""
+    from polycubenet.inference import ANCHOR_SPREADS
+
     if text == "default":
         return None
     table = []
     for entry in text.split(","):
         fields = entry.split("/")
-        if len(fields) != 4 or fields[2] not in ("y", "n") or fields[3] not in ("x", "y", "z", "-"):
-            raise ValueError(f"bad --draws entry {entry!r}: expected STEPS/SEED/y|n/x|y|z|-")
-        table.append((int(fields[0]), int(fields[1]), fields[2] == "y", None if fields[3] == "-" else fields[3]))
+        if (len(fields) not in (4, 5) or fields[2] not in ("y", "n") or fields[3] not in ("x", "y", "z", "-")
+                or (len(fields) == 5 and fields[4] not in ANCHOR_SPREADS)):
+            raise ValueError(f"bad --draws entry {entry!r}: expected STEPS/SEED/y|n/x|y|z|-[/uniform|even]")
+        row = (int(fields[0]), int(fields[1]), fields[2] == "y", None if fields[3] == "-" else fields[3])
+        table.append(row + ((fields[4],) if len(fields) == 5 else ()))
     return tuple(table)
 
 
@@ -183,11 +188,11 @@ def use_even_anchors() -> None:
     independent area-uniform samples (:func:`polycubenet.inference.part_anchors`), for both the first-draw
     rows and ``--mesh``.  A measurement, not a pipeline setting: the flow's cache key does not know it."""
     from polycubenet import inference
-    from polycubenet.sampling import poisson_disk
 
-    def even(V, F, n, seed=0, normals=False):
-        s = poisson_disk(np.asarray(V, float), np.asarray(F), int(n), seed=seed)
-        return (np.hstack([s.points, s.normals]) if normals else s.points).astype(np.float32)
+    base = inference.part_anchors
+
+    def even(V, F, n, seed=0, normals=False, spread="uniform"):  # every draw's, whatever it asks for
+        return base(V, F, n, seed, normals, spread="even")
 
     inference.part_anchors = even
 
@@ -266,8 +271,9 @@ def main(argv=None) -> int:
                     help="PipelineConfig.snap_planes: each planar part face tilted at least DEG from its label's axis "
                          "onto one plane in the learned cloud; off: never (default: the pipeline's)")
     ap.add_argument("--draws", default="default",
-                    help="with --mesh: the model's further draws after the first, entries STEPS/SEED/FALLBACKS/TURN "
-                         "joined by commas (e.g. 4/0/n/-,1/1/y/z; default: policy.LEARNED_DRAWS)")
+                    help="with --mesh: the model's further draws after the first, entries STEPS/SEED/FALLBACKS/TURN"
+                         "[/ANCHORS] joined by commas (e.g. 4/0/n/-,1/1/y/z,1/0/y/-/even; default: "
+                         "policy.LEARNED_DRAWS)")
     ap.add_argument("--anchors", choices=("uniform", "even"), default="uniform",
                     help="how the model's anchors are drawn on the part: uniform (the pipeline's: independent "
                          "area-uniform samples) or even (Poisson-disk, blue noise; session 37's measurement, "

@@ -113,22 +113,37 @@ def plan_batches(n_in: Sequence[int], n_out: Sequence[int], point_budget: int = 
     return batches
 
 
-def part_anchors(V: np.ndarray, F: np.ndarray, n: int, seed: int = 0, normals: bool = False) -> np.ndarray:
-    """``(n, 3)`` anchor points for an anchored model: area-uniform samples of the part ``(V, F)``
-    (canonical frame), a function of the part and ``seed`` only; with ``normals`` ``(n, 6)``: each
-    point and the unit normal of its triangle (for a model with ``anchor_normals``)."""
-    from .sampling import uniform_sample
+#: how a draw spreads the model's anchors on the part: ``uniform``, independent area-uniform samples (the
+#: first draw's); ``even``, a Poisson-disk sample (blue noise, as the training pairs' anchors are spread)
+ANCHOR_SPREADS = ("uniform", "even")
 
-    s = uniform_sample(np.asarray(V, float), np.asarray(F), int(n), np.random.default_rng(seed))
+
+def part_anchors(V: np.ndarray, F: np.ndarray, n: int, seed: int = 0, normals: bool = False,
+                 spread: str = "uniform") -> np.ndarray:
+    """``(n, 3)`` anchor points for an anchored model: samples of the part ``(V, F)`` (canonical
+    frame) spread as ``spread`` says (:data:`ANCHOR_SPREADS`), a function of the part and ``seed``
+    only; with ``normals`` ``(n, 6)``: each point and the unit normal of its triangle (for a model
+    with ``anchor_normals``)."""
+    from .sampling import poisson_disk, uniform_sample
+
+    V, F = np.asarray(V, float), np.asarray(F)
+    if spread == "uniform":
+        s = uniform_sample(V, F, int(n), np.random.default_rng(seed))
+    elif spread == "even":
+        s = poisson_disk(V, F, int(n), seed=seed)
+    else:
+        raise ValueError(f"unknown anchor spread {spread!r}; expected one of {ANCHOR_SPREADS}")
     out = np.hstack([s.points, s.normals]) if normals else s.points
     return out.astype(np.float32)
 
 
-def model_anchors(loaded: "Loaded", V: np.ndarray, F: np.ndarray, n: int, seed: int = 0) -> np.ndarray | None:
+def model_anchors(loaded: "Loaded", V: np.ndarray, F: np.ndarray, n: int, seed: int = 0,
+                  spread: str = "uniform") -> np.ndarray | None:
     """The anchors ``loaded`` needs for a part ``(V, F)`` (canonical frame): None for a free-point
-    model, else :func:`part_anchors` with the part's normals when the model takes them."""
+    model, else :func:`part_anchors` (spread as ``spread`` says) with the part's normals when the
+    model takes them."""
     cfg = loaded.model.config
-    return part_anchors(V, F, n, seed, normals=cfg.anchor_normals) if cfg.anchored else None
+    return part_anchors(V, F, n, seed, normals=cfg.anchor_normals, spread=spread) if cfg.anchored else None
 
 
 def _sample_batch(loaded: Loaded, conds: list[np.ndarray], n_out: int, seeds: list[int], *, steps, stride, eta,
@@ -242,13 +257,17 @@ class ModelSource:
     part's sample and returns a :class:`PolycubeCloud` with ``meta["provenance"] == "learned"``.
     With ``turn`` (a key of :data:`TURNS`) the model sees the part (samples and anchors) turned a
     half-turn about that axis, and the generated cloud is turned back: another view of the same part.
+    ``anchors`` spreads the model's anchors on the part (:data:`ANCHOR_SPREADS`).
     """
 
     def __init__(self, model: str | Path | Loaded | None = None, steps: int | None = None, seed: int = 0,
-                 device: str | None = None, turn: str | None = None):
+                 device: str | None = None, turn: str | None = None, anchors: str = "uniform"):
         if turn is not None and turn not in TURNS:
             raise ValueError(f"unknown turn {turn!r}; expected one of {sorted(TURNS)} or None")
+        if anchors not in ANCHOR_SPREADS:
+            raise ValueError(f"unknown anchor spread {anchors!r}; expected one of {ANCHOR_SPREADS}")
         self.model, self.steps, self.seed, self.device, self.turn = model, steps, seed, device, turn
+        self.anchors = anchors
 
     def further_draws(self) -> tuple[int, ...]:
         """The ``K`` of the model's further draws ``learned+K`` after this source's own
@@ -259,20 +278,21 @@ class ModelSource:
 
     def draw_source(self, k: int) -> "ModelSource":
         """The source of the further draw ``learned+k``: the same model and device, at that draw's
-        steps, seed offset and turn (:data:`polycubenet.policy.LEARNED_DRAWS`) from this source's."""
-        from .policy import draw_seed, draw_steps, draw_turn
+        steps, seed offset, turn and anchor spread (:data:`polycubenet.policy.LEARNED_DRAWS`) from this
+        source's."""
+        from .policy import draw_anchors, draw_seed, draw_steps, draw_turn
 
         name = f"learned+{int(k)}"
         steps = draw_steps(name, resolve_steps(self.steps, self.device, self.model)[1])
         return ModelSource(self.model, steps=steps, seed=self.seed + draw_seed(name), device=self.device,
-                           turn=draw_turn(name))
+                           turn=draw_turn(name), anchors=draw_anchors(name))
 
     def __call__(self, sample, V, F, config) -> PolycubeCloud:
         loaded = load_model(self.model, self.device)
         t0 = time.perf_counter()
         seed = self.seed + config.seed
         n = int(getattr(config, "n_learned", None) or config.n_polycube)
-        a = model_anchors(loaded, V, F, n, seed)
+        a = model_anchors(loaded, V, F, n, seed, spread=self.anchors)
         cond, anchors = sample.points, None if a is None else [a]
         if self.turn:  # the part turned (points, and normals alike), the cloud turned back
             R = TURNS[self.turn]  # a signed diagonal: its own inverse and transpose
@@ -291,6 +311,8 @@ class ModelSource:
         }
         if self.turn:
             meta["turn"] = self.turn
+        if self.anchors != "uniform":
+            meta["anchors"] = self.anchors
         return PolycubeCloud(cloud[:, :3].astype(np.float64), cloud[:, 3:].astype(np.float64), meta=meta,
                              anchors=None if a is None else a[:, :3].astype(np.float64),
                              anchor_normals=None if a is None or a.shape[1] < 6 else a[:, 3:6].astype(np.float64))

@@ -43,7 +43,7 @@ from .atomic import write_json, write_text
 from .data import HexMesh, Part, Polycube, PolycubeCloud, SurfaceSample
 from .errors import PolycubeError
 from .pipeline import OracleSource, PartResult, PipelineConfig
-from .policy import draw_seed, draw_steps, draw_turn, extraction_config, refinement, source_config
+from .policy import draw_anchors, draw_seed, draw_steps, draw_turn, extraction_config, refinement, source_config
 
 #: part files the library reads (``polycubenet.io.load_part``)
 CAD_SUFFIXES = (".step", ".stp", ".iges", ".igs")
@@ -351,10 +351,12 @@ def source_extra(kind: str, part_path: str | os.PathLike, checkpoint: str | os.P
         used = draw_steps(kind, used)
         extra = {"checkpoint": file_hash(checkpoint) if checkpoint and Path(checkpoint).is_file() else str(checkpoint),
                  "steps": used, "device": dev_type}
-        if refinement(kind)[1]:  # a further draw: its seed offset too, and its turn where it has one
+        if refinement(kind)[1]:  # a further draw: its seed offset too, its turn and anchor spread where it has them
             extra["seed"] = draw_seed(kind)
             if draw_turn(kind):
                 extra["turn"] = draw_turn(kind)
+            if draw_anchors(kind) != "uniform":
+                extra["anchors"] = draw_anchors(kind)
         return extra
     if kind == "classical" and classical_available():
         # the construction's settings and version: a cached classical cloud made by older code is not reused

@@ -68,7 +68,8 @@ from .errors import PartError, PolycubeError
 MODES = ("auto", "learned", "classical", "voxel")
 #: finer voxel polycubes after the first one (``voxel+1`` ... ``voxel+3``)
 VOXEL_REFINEMENTS = 3
-#: the model's further draws after its first, in order: ``(DDIM steps, seed offset, generator fallbacks, turn)`` of
+#: the model's further draws after its first, in order: ``(DDIM steps, seed offset, generator fallbacks, turn[,
+#: anchor spread])`` of
 #: ``learned+1``, ``learned+2``, ...  (a draw never uses fewer steps than the first; one that would repeat the
 #: first is skipped, :func:`learned_draws`; the fallbacks: :func:`extraction_config`).  Measured on never-seen
 #: parts meshed valid, faithful and >= 0.2 through the learned source (of 16, ``benchmarks/unseen_parts.py
@@ -122,6 +123,15 @@ def draw_turn(source: str) -> str | None:
     return entry[3] if len(entry) > 3 else None
 
 
+def draw_anchors(source: str) -> str:
+    """How a learned source's draw spreads the model's anchors on the part
+    (:data:`polycubenet.inference.ANCHOR_SPREADS`): ``uniform`` for ``learned`` and for a further draw
+    whose :data:`LEARNED_DRAWS` entry names no spread."""
+    k = refinement(source)[1]
+    entry = LEARNED_DRAWS[k - 1] if k else ()
+    return entry[4] if len(entry) > 4 else "uniform"
+
+
 def draw_fallbacks(source: str) -> bool:
     """Whether a learned source's draw is extracted with the generator fallbacks: always the first draw
     (``learned``), a further draw when its :data:`LEARNED_DRAWS` entry says so."""
@@ -131,13 +141,13 @@ def draw_fallbacks(source: str) -> bool:
 
 def learned_draws(steps) -> tuple[int, ...]:
     """The further draws ``K`` (sources ``learned+K``) after a first draw at ``steps``: every entry
-    of :data:`LEARNED_DRAWS` that would not repeat the first draw (same steps, seed offset 0, no turn); none
-    after a first draw at a schedule that is not a step count (the GPU's ``"stride4"``)."""
+    of :data:`LEARNED_DRAWS` that would not repeat the first draw (same steps, seed offset 0, no turn,
+    uniform anchors); none after a first draw at a schedule that is not a step count (the GPU's ``"stride4"``)."""
     if not _int_steps(steps):
         return ()
     return tuple(k for k in range(1, len(LEARNED_DRAWS) + 1)
-                 if (draw_steps(f"learned+{k}", steps), draw_seed(f"learned+{k}"), draw_turn(f"learned+{k}"))
-                 != (int(steps), 0, None))
+                 if (draw_steps(f"learned+{k}", steps), draw_seed(f"learned+{k}"), draw_turn(f"learned+{k}"),
+                     draw_anchors(f"learned+{k}")) != (int(steps), 0, None, "uniform"))
 
 
 def refinement(source: str) -> tuple[str, int]:
@@ -183,14 +193,16 @@ def extraction_config(source: str, config):
 def source_label(source: str) -> str:
     """How reasons name a source: ``voxel+2`` is "voxel (refinement 2)", ``voxel+3*``
     "voxel (refinement 3, 1.5x hexes)", ``learned+1`` "learned (draw 2, 4 steps)", a draw with another seed
-    "learned (draw 3, 4 steps, seed +1)", a turned one "learned (draw 3, 1 step, seed +1, turned about z)" (the
+    "learned (draw 3, 4 steps, seed +1)", a turned one "learned (draw 3, 1 step, seed +1, turned about z)", one
+    with evenly spread anchors "learned (draw 4, 1 step, even anchors)" (the
     steps of :data:`LEARNED_DRAWS`; a run at more steps draws at its own)."""
     base, k = refinement(source)
     if base == "learned" and k:
         seed = f", seed +{draw_seed(source)}" if draw_seed(source) else ""
         turn = f", turned about {draw_turn(source)}" if draw_turn(source) else ""
+        spread = f", {draw_anchors(source)} anchors" if draw_anchors(source) != "uniform" else ""
         n = LEARNED_DRAWS[k - 1][0]
-        return f"learned (draw {k + 1}, {n} step{'s' if n != 1 else ''}{seed}{turn})"
+        return f"learned (draw {k + 1}, {n} step{'s' if n != 1 else ''}{seed}{turn}{spread})"
     if denser(source):
         return f"{base} (refinement {k}, {DENSER_HEXES:g}x hexes)"
     return f"{base} (refinement {k})" if k else source

@@ -268,6 +268,47 @@ def test_model_source_further_draws_and_their_place_in_the_chain(ckpt, monkeypat
     assert library.make_source("learned+1", "p.stl", None, checkpoint=ckpt, steps=1, device="cpu").turn == "y"
     keys = [library.source_extra(f"learned+{k}", "p.stl", ckpt, steps=1, device="cpu") for k in (1, 2)]
     assert keys[0]["turn"] == "y" and "turn" not in keys[1] and keys[0]["seed"] == keys[1]["seed"] == 1
+    # so does its anchor spread; a uniform draw's key is what it was before spreads existed
+    monkeypatch.setattr(policy, "LEARNED_DRAWS", ((1, 0, True, None, "even"), (1, 1, True, None)))
+    assert src.draw_source(1).anchors == "even" and src.anchors == "uniform" == src.draw_source(2).anchors
+    assert library.make_source("learned+1", "p.stl", None, checkpoint=ckpt, steps=1, device="cpu").anchors == "even"
+    keys = [library.source_extra(f"learned+{k}", "p.stl", ckpt, steps=1, device="cpu") for k in (1, 2)]
+    assert keys[0]["anchors"] == "even" and "anchors" not in keys[1] and keys[0]["seed"] == 0
+
+
+def test_evenly_spread_anchors_are_a_blue_noise_sample_that_the_model_source_hands_the_model(tmp_path):
+    """``part_anchors(spread="even")`` is a Poisson-disk sample: its closest pair of points is far
+    apart next to independent samples' of the same size; ``ModelSource(anchors="even")`` draws from
+    those anchors (the cloud's anchors are them), and an unknown spread is an error."""
+    import dataclasses
+
+    from scipy.spatial import cKDTree
+
+    from polycubenet.inference import part_anchors
+
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float) - 0.3
+    F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    uniform = part_anchors(V, F, 400, seed=5, normals=True)
+    even = part_anchors(V, F, 400, seed=5, normals=True, spread="even")
+    assert even.shape == uniform.shape == (400, 6)
+    np.testing.assert_allclose(np.linalg.norm(even[:, 3:], axis=1), 1.0, atol=1e-5)
+    gap = [cKDTree(a[:, :3]).query(a[:, :3], k=2)[0][:, 1].min() for a in (uniform, even)]
+    assert gap[1] > 3 * gap[0], gap
+    np.testing.assert_array_equal(even, part_anchors(V, F, 400, seed=5, normals=True, spread="even"))
+    with pytest.raises(ValueError, match="unknown anchor spread"):
+        part_anchors(V, F, 10, spread="blue")
+    torch.manual_seed(2)
+    net = PolycubeNet(dataclasses.replace(preset("tiny"), anchored=True, anchor_normals=True))
+    path = save_checkpoint(tmp_path / "tiny-even.pt", {
+        "kind": "published", "model_config": net.config.to_dict(),
+        "diffusion": Diffusion(prediction="v", schedule="cosine_ztsnr").to_dict(), "ema": net.state_dict()})
+    config = PipelineConfig(n_learned=60, seed=3)
+    sample = types.SimpleNamespace(points=_cloud(90, 31).astype(np.float64))
+    cloud = ModelSource(path, steps=1, device="cpu", anchors="even")(sample, V, F, config)
+    np.testing.assert_allclose(cloud.anchors, part_anchors(V, F, 60, seed=3, spread="even"), atol=1e-6)
+    assert cloud.meta["anchors"] == "even"
+    with pytest.raises(ValueError, match="unknown anchor spread"):
+        ModelSource(path, anchors="blue")
 
 
 def test_a_turned_draw_is_the_turned_part_drawn_and_turned_back(tmp_path):

@@ -7,7 +7,7 @@ import pytest
 
 from polycubenet.errors import PartError, PolycubeError
 from polycubenet import policy
-from polycubenet.policy import (LEARNED_DRAWS, Attempt, draw_fallbacks, draw_seed, draw_steps, draw_turn, learned_draws, leaves_source, refinement, run_chain,
+from polycubenet.policy import (LEARNED_DRAWS, Attempt, draw_anchors, draw_fallbacks, draw_seed, draw_steps, draw_turn, learned_draws, leaves_source, refinement, run_chain,
                                 source_label, source_names)
 
 
@@ -90,6 +90,11 @@ def test_the_models_further_draws_follow_the_first(monkeypatch):
     assert [draw_turn(s) for s in ("learned", "learned+1", "learned+2", "learned+3")] == [None, "x", None, "z"]
     assert learned_draws(1) == (1, 3) and source_label("learned+1") == "learned (draw 2, 1 step, turned about x)"
     assert source_label("learned+3") == "learned (draw 4, 1 step, seed +1, turned about z)"
+    # a draw with evenly spread anchors: at the first's steps and seed it is not a repeat of the first either
+    monkeypatch.setattr(policy, "LEARNED_DRAWS", ((1, 0, True, None, "even"), (1, 0, True, None, "uniform")))
+    assert [draw_anchors(s) for s in ("learned", "learned+1", "learned+2")] == ["uniform", "even", "uniform"]
+    assert learned_draws(1) == (1,) == learned_draws(4)  # the uniform one repeats the first
+    assert source_label("learned+1") == "learned (draw 2, 1 step, even anchors)"
     # a longer table: never with fewer steps than the first, never repeating the first
     monkeypatch.setattr(policy, "LEARNED_DRAWS", ((4, 0, False), (4, 1, False), (4, 2, False)))
     assert learned_draws(1) == (1, 2, 3) and learned_draws(4) == (2, 3) and learned_draws("stride4") == ()
