@@ -86,8 +86,14 @@ VOXEL_REFINEMENTS = 3
 #: dev sets (machined 61 + 67, the 71.93 h continue file) turned about z it meshes 2 of the 16 parts the unturned
 #: draws leave (``benchmarks/results/dev_draws_s36.json``), but on the never-seen machined
 #: sets 11, 31, 53, 103 (the shipped file) 34 of 64 against 35 (+0, -1) and on the examples 9 of 10 against 8
-#: (bushing; ``benchmarks/results/turned_draws_s36.json``): no better than another seed, not kept
-LEARNED_DRAWS = ((4, 0, False, None), (1, 1, True, None))
+#: (bushing; ``benchmarks/results/turned_draws_s36.json``): no better than another seed, not kept.  The anchor
+#: spread: ``uniform`` (independent area-uniform samples, the first draw's) or ``even`` (a Poisson-disk sample,
+#: spread as the training pairs' anchors are; :data:`polycubenet.inference.ANCHOR_SPREADS`).  Session 38, a
+#: fourth draw as the first but with evenly spread anchors (the 76.57 h continue file's session 37 finding,
+#: ``benchmarks/anchor_sampling.py``): dev sets (machined 61 + 67, the shipped file) 20 of 32 against 18 (+2,
+#: -0), the examples 10 of 10 against 8 (bushing, flange), the never-seen machined sets 11, 31, 53, 103 35 of
+#: 64 as before (+0, -0; ``benchmarks/results/even_draw_s38.json``): kept, a later draw loses no part
+LEARNED_DRAWS = ((4, 0, False, None), (1, 1, True, None), (1, 0, True, None, "even"))
 #: the very last source, ``voxel+3*``: the finest voxel polycube partitioned into this many times the hexes
 DENSER_HEXES = 1.5
 

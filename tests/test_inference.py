@@ -241,8 +241,9 @@ def test_model_source_further_draws_and_their_place_in_the_chain(ckpt, monkeypat
     from polycubenet import policy
     from polycubenet.pipeline import source_chain
 
-    assert ModelSource(ckpt, steps=1, device="cpu").further_draws() == (1, 2)  # the shipped table
-    assert ModelSource(ckpt, steps=4, device="cpu").further_draws() == (2,)
+    assert ModelSource(ckpt, steps=1, device="cpu").further_draws() == (1, 2, 3)  # the shipped table
+    assert ModelSource(ckpt, steps=4, device="cpu").further_draws() == (2, 3)
+    assert ModelSource(ckpt, steps=1, device="cpu").draw_source(3).anchors == "even"
     LEARNED_DRAWS = ((4, 0, False), (4, 1, False), (4, 2, False))
     monkeypatch.setattr(policy, "LEARNED_DRAWS", LEARNED_DRAWS)
     src = ModelSource(ckpt, steps=1, seed=2, device="cpu")

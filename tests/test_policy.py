@@ -77,13 +77,15 @@ def test_the_last_source_partitions_the_finest_voxel_polycube_denser():
 
 
 def test_the_models_further_draws_follow_the_first(monkeypatch):
-    # the shipped table: a 4-step draw after a cheaper first, then a one-step draw at another seed; after a
-    # first draw at 4 steps only that one (at 4 steps: never fewer than the first), the 4-step draw at seed +0
-    # would repeat the first
-    assert LEARNED_DRAWS == ((4, 0, False, None), (1, 1, True, None))
-    assert learned_draws(1) == (1, 2) and learned_draws(4) == (2,) == learned_draws(8)
-    assert [draw_fallbacks(s) for s in ("learned", "learned+1", "learned+2")] == [True, False, True]
+    # the shipped table: a 4-step draw after a cheaper first, then a one-step draw at another seed, then one as
+    # the first but with evenly spread anchors; after a first draw at 4 steps the 4-step draw at seed +0 would
+    # repeat the first (at 4 steps: never fewer than the first)
+    assert LEARNED_DRAWS == ((4, 0, False, None), (1, 1, True, None), (1, 0, True, None, "even"))
+    assert learned_draws(1) == (1, 2, 3) and learned_draws(4) == (2, 3) == learned_draws(8)
+    assert [draw_fallbacks(s) for s in ("learned", "learned+1", "learned+2", "learned+3")] == [True, False, True, True]
     assert source_label("learned+2") == "learned (draw 3, 1 step, seed +1)"
+    assert source_label("learned+3") == "learned (draw 4, 1 step, even anchors)"
+    assert [draw_anchors(f"learned+{k}") for k in (1, 2, 3)] == ["uniform", "uniform", "even"]
     # a draw of the part turned (measured in session 36, not in the table): named so, and at the first's steps
     # and seed it is not a repeat of the first
     monkeypatch.setattr(policy, "LEARNED_DRAWS", ((1, 0, True, "x"), (1, 0, True, None), (1, 1, True, "z")))
