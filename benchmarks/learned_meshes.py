@@ -15,8 +15,9 @@ on synthetic pairs; this one is read on machined-style parts the model never saw
 
 ``--draws`` gives each arm (one per ``--checkpoints`` entry; repeat a checkpoint to compare tables) its own table
 of the model's further draws instead of ``polycubenet.policy.LEARNED_DRAWS`` (``default``): entries
-``STEPS/SEED/FALLBACKS/TURN`` joined by commas, FALLBACKS ``y``/``n``, TURN ``x``, ``y``, ``z`` or ``-`` (none),
-e.g. ``default`` against ``4/0/n/-,1/1/y/z`` (the policy's third draw turned about z; session 36).
+``STEPS/SEED/FALLBACKS/TURN[/ANCHORS]`` joined by commas, FALLBACKS ``y``/``n``, TURN ``x``, ``y``, ``z`` or ``-``
+(none), ANCHORS ``uniform`` (the default) or ``even``, e.g. ``default`` against ``4/0/n/-,1/1/y/z`` (the
+policy's first two further draws, the second turned about z; session 36).
 """
 
 from __future__ import annotations
