@@ -311,7 +311,7 @@ class ModelSource:
         }
         if self.turn:
             meta["turn"] = self.turn
-        if self.anchors != "uniform":
+        if self.anchors != "uniform" and a is not None:
             meta["anchors"] = self.anchors
         return PolycubeCloud(cloud[:, :3].astype(np.float64), cloud[:, 3:].astype(np.float64), meta=meta,
                              anchors=None if a is None else a[:, :3].astype(np.float64),
