@@ -249,7 +249,7 @@ def main(argv=None) -> int:
     from model_failures import part_rows
 
     from polycubenet.atomic import write_json
-    from polycubenet.inference import DEFAULT_CHECKPOINT
+    from polycubenet.inference import ANCHOR_SPREADS, DEFAULT_CHECKPOINT
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--count", type=int, default=16)
@@ -274,7 +274,7 @@ def main(argv=None) -> int:
                     help="with --mesh: the model's further draws after the first, entries STEPS/SEED/FALLBACKS/TURN"
                          "[/ANCHORS] joined by commas (e.g. 4/0/n/-,1/1/y/z,1/0/y/-/even; default: "
                          "policy.LEARNED_DRAWS)")
-    ap.add_argument("--anchors", choices=("uniform", "even"), default="uniform",
+    ap.add_argument("--anchors", choices=ANCHOR_SPREADS, default="uniform",
                     help="how the model's anchors are drawn on the part: uniform (the pipeline's: independent "
                          "area-uniform samples) or even (Poisson-disk, blue noise; session 37's measurement, "
                          "see use_even_anchors)")
