@@ -197,6 +197,15 @@ def use_even_anchors() -> None:
     inference.part_anchors = even
 
 
+def map_name(meta: dict) -> str:
+    """The map that made a kept mesh, as the row's last column: ``registration``, ``exact`` (realised), or
+    ``exact, N inserted`` where the realisation put back N thin slabs of the part
+    (:func:`polycubenet.realise.match_structure`)."""
+    name = str(meta.get("map")).split(" (")[0]
+    inserted = (meta.get("realised") or {}).get("inserted_slabs") or 0
+    return f"{name}, {inserted} inserted" if name == "exact" and inserted else name
+
+
 def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int = 0,
                  learned_maps: tuple[str, ...] | None = None, snap_planes: float | str | None = "default",
                  draws: tuple | None = None) -> dict:
@@ -239,7 +248,7 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
             dist = r.row()["hausdorff"]
             res[p.stem] = (ok, None if q is None else q.sj_min, draw if ok else None,
                            round(time.perf_counter() - t0, 1), None if dist is None else round(float(dist), 4),
-                           r.fallback_reason, str(r.mesh.meta.get("map")).split(" (")[0])
+                           r.fallback_reason, map_name(r.mesh.meta))
         except Exception as exc:  # noqa: BLE001 - report the failure in the row
             res[p.stem] = (False, f"{type(exc).__name__}", None, round(time.perf_counter() - t0, 1), None, str(exc), None)
     return res
@@ -315,7 +324,7 @@ def main(argv=None) -> int:
     print(f"\n{'part':<18} {'genus':>5} {'first draw':<28} {'learned mesh: SJ, Hausdorff':<28} shape")
     for r in rows:
         m = meshed.get(r["part"])
-        ms = "" if m is None else (("valid, draw %d%s" % (m[2], ", realised" if m[6] == "exact" else "")) if m[0] else "no") + (
+        ms = "" if m is None else (("valid, draw %d%s" % (m[2], (", realised" + m[6][5:]) if str(m[6]).startswith("exact") else "")) if m[0] else "no") + (
             f" {m[1]:.3f}" if isinstance(m[1], float) else f" {m[1]}") + (
             f" {100 * m[4]:.1f}%" if m[4] is not None else "")
         print(f"{r['part']:<18} {r['genus']:>5} {r['category']:<28} {ms:<28} {r['shape']}")
@@ -326,7 +335,7 @@ def main(argv=None) -> int:
 
     def counts(m: dict) -> tuple[int, int, int]:
         return (sum(v[2] == 1 for v in m.values()), sum(bool(v[0]) for v in m.values()),
-                sum(bool(v[0]) and v[6] == "exact" for v in m.values()))
+                sum(bool(v[0]) and str(v[6]).startswith("exact") for v in m.values()))
 
     if meshed:
         (u1, u, ur), (e1, e, er) = counts(meshed), counts(ex_meshed)

@@ -522,7 +522,8 @@ def partition_pullback(extracted: str | os.PathLike, corr: str | os.PathLike, lo
 
 def meshed_polycube(hexc: str | os.PathLike, extracted: str | os.PathLike) -> Polycube:
     """The polycube a pull-back file was meshed on: the extracted one, or the one it was realised as (a
-    learned polycube realised exactly, its thin slabs collapsed: :func:`polycubenet.pipeline.pull_back_learned`)."""
+    learned polycube realised exactly, its thin slabs collapsed or the part's put back:
+    :func:`polycubenet.pipeline.pull_back_learned`)."""
     m = HexMesh.load(hexc).meta
     if "realised_polycube" in m:
         return Polycube.from_meta(m["realised_polycube"])

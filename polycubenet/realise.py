@@ -20,14 +20,17 @@ the part by 1-4 % of its diagonal although the structure is right.
 3. **The same structure, or nothing.**  The solid that the flattened surface bounds
    (:func:`classical.flat_structure`, planes closer than :data:`MERGE_REL` of the learned
    polycube's smallest cell merged) must have exactly the learned polycube's minimal grid and
-   occupancy; otherwise :class:`~polycubenet.errors.PolycubeError` says how it differs and the
+   occupancy, up to slabs thinner than :data:`THIN_SLAB` on either side (:func:`match_structure`:
+   a learned slab collapsed where the part has one plane, a thin slab of the part put back where the
+   learned polycube has one plane); otherwise :class:`~polycubenet.errors.PolycubeError` says how it differs and the
    registration's map is used as before.  When it matches, each axis goes through the monotone
    piecewise-linear map that sends the flattened planes onto the learned ones, so the flattened
    surface *is* the learned polycube's surface, and :class:`~polycubenet.classical.SurfaceMap`
    maps it exactly (barycentric) onto the part.
 
-Provenance stays honest: the structure (cells, planes, genus) is the generated cloud's, only the
-map onto the part is computed by the classical deformation; nothing of the classical labelling
+Provenance stays honest: the structure (cells, planes, genus) is the generated cloud's, up to the thin
+slabs :func:`match_structure` collapses or puts back (counted in the map's ``meta``: ``collapsed_slabs``,
+``inserted_slabs``); the map onto the part is computed by the classical deformation; nothing of the classical labelling
 (the normals' own labels) or the voxel grid enters.
 """
 
@@ -93,7 +96,8 @@ class RealiseConfig:
 @dataclasses.dataclass
 class Realised:
     """:func:`realise`'s result: the exact map (``map_points`` like registration's) and the polycube it maps
-    from (the learned one, its thin slabs collapsed where the part has one plane)."""
+    from (the learned one, its thin slabs collapsed where the part has one plane and the part's thin slabs
+    put back where the learned one has one plane)."""
 
     map: SurfaceMap
     polycube: Polycube
@@ -226,29 +230,57 @@ def _collapsed_planes(planes: np.ndarray, slabs) -> np.ndarray:
     return np.delete(q, [i + 1 for i in sorted(slabs)])
 
 
+def _expanded_planes(planes: np.ndarray, got: np.ndarray, slabs) -> np.ndarray:
+    """``planes`` (one fewer per listed slab than ``got``) with each of ``got``'s collapsed slabs put back:
+    the learned plane it collapsed onto split into two, ``got``'s thickness apart (at most 0.4 of either
+    neighbouring cell, so the planes stay in order)."""
+    q = np.asarray(planes, dtype=np.float64)
+    out, j, slabs = [], 0, set(slabs)
+    i = 0
+    while i < len(got):
+        if i in slabs:  # got's slab (i, i + 1) is the learned plane q[j]
+            w = float(got[i + 1] - got[i])
+            lo = q[j] - q[j - 1] if j > 0 else np.inf
+            hi = q[j + 1] - q[j] if j + 1 < len(q) else np.inf
+            h = min(0.5 * w, 0.4 * lo, 0.4 * hi)
+            out += [q[j] - h, q[j] + h]
+            i += 2
+        else:
+            out.append(q[j])
+            i += 1
+        j += 1
+    return np.asarray(out)
+
+
 def match_structure(got_grid, got_occ, poly, thin: float = THIN_SLAB):
     """The learned polycube ``poly``'s planes in the order of the solid ``(got_grid, got_occ)``'s minimal
     grid, when the two are one structure: identical minimal grids and occupancies, or identical once
-    some of the learned polycube's slabs thinner than ``thin`` are collapsed (a face the generated
-    cloud drew a little thick, cut in two planes, which the part has as one).  Returns ``(got planes,
-    learned planes, collapsed slab count)``; raises :class:`~polycubenet.errors.PolycubeError` saying
-    how they differ otherwise."""
+    some slabs thinner than ``thin`` are collapsed: of the learned polycube (a face the generated cloud
+    drew a little thick, cut in two planes, which the part has as one), or, along an axis where the
+    part has more planes, of the flattened part (two close part planes, a thin step or lip, that the
+    generated cloud drew as one; that slab is put back around the learned plane, the part's thickness
+    wide).  Returns ``(got planes, learned planes, collapsed slab count, inserted slab count)``; raises
+    :class:`~polycubenet.errors.PolycubeError` saying how they differ otherwise."""
     ga, oa = compress(list(got_grid), got_occ)
     gb, ob = compress([poly.xs, poly.ys, poly.zs], poly.occupancy)
-    options = [_collapses(ga[a], gb[a], thin) for a in range(3)]
+    # per axis: (slabs collapsed in the learned grid, slabs collapsed in the part's)
+    options = [[(sub, ()) for sub in _collapses(ga[a], gb[a], thin)]
+               + [((), sub) for sub in _collapses(gb[a], ga[a], thin) if sub and np.diff(sub).min(initial=2) > 1]
+               for a in range(3)]
     if not all(options):
         raise PolycubeError(f"the flattened part bounds a {'x'.join(map(str, oa.shape))} grid, the learned polycube "
                             f"{'x'.join(map(str, ob.shape))}")
     worst = None
     for subs in itertools.product(*options):
-        occ = ob
+        occ_b, occ_a = ob, oa
         for a in range(3):
-            occ = np.delete(occ, list(subs[a]), axis=a)
-        if occ.shape == oa.shape and bool((occ == oa).all()):
-            planes = [_collapsed_planes(gb[a], subs[a]) for a in range(3)]
-            return ga, planes, int(sum(len(s) for s in subs))
-        if occ.shape == oa.shape:
-            worst = int((occ != oa).sum()) if worst is None else min(worst, int((occ != oa).sum()))
+            occ_b = np.delete(occ_b, list(subs[a][0]), axis=a)
+            occ_a = np.delete(occ_a, list(subs[a][1]), axis=a)
+        if occ_b.shape == occ_a.shape and bool((occ_b == occ_a).all()):
+            planes = [_expanded_planes(_collapsed_planes(gb[a], subs[a][0]), ga[a], subs[a][1]) for a in range(3)]
+            return (ga, planes, int(sum(len(s[0]) for s in subs)), int(sum(len(s[1]) for s in subs)))
+        if occ_b.shape == occ_a.shape:
+            worst = int((occ_b != occ_a).sum()) if worst is None else min(worst, int((occ_b != occ_a).sum()))
     raise PolycubeError(f"{worst if worst is not None else 'the'} cells differ from the learned polycube's")
 
 
@@ -297,7 +329,7 @@ def realise(V: np.ndarray, F: np.ndarray, poly, map_points, config: RealiseConfi
     if st["reason"] is not None:
         raise PolycubeError(f"the part flattened on the learned labels is not a polycube ({st['reason']})", part)
     try:
-        ga, gb, collapsed = match_structure(st["grid"], st["occupancy"], poly, config.thin_slab)
+        ga, gb, collapsed, inserted = match_structure(st["grid"], st["occupancy"], poly, config.thin_slab)
     except PolycubeError as exc:
         raise PolycubeError(f"the part flattened on the learned labels differs from the learned polycube: {exc.args[0]}",
                             part) from None
@@ -306,8 +338,9 @@ def realise(V: np.ndarray, F: np.ndarray, poly, map_points, config: RealiseConfi
     for a in range(3):
         Y[:, a] = np.interp(Xp[:, a], ga[a], gb[a])
     _, occ = compress(list(st["grid"]), st["occupancy"])
-    meta.update(collapsed_slabs=collapsed, seconds=time.perf_counter() - t0)
-    realised = Polycube(gb[0], gb[1], gb[2], occ, meta={**poly.meta, "realised": True, "collapsed_slabs": collapsed})
+    meta.update(collapsed_slabs=collapsed, inserted_slabs=inserted, seconds=time.perf_counter() - t0)
+    realised = Polycube(gb[0], gb[1], gb[2], occ, meta={**poly.meta, "realised": True, "collapsed_slabs": collapsed,
+                                                        "inserted_slabs": inserted})
     return Realised(SurfaceMap(Y, Fs, Vs, meta={"method": "learned polycube, exact map by the classical deformation",
                                                 **meta}), realised)
 

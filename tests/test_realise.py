@@ -97,13 +97,37 @@ def test_a_thin_slab_of_the_learned_polycube_collapses_onto_the_part_plane_but_a
         lx, ly, lz, locc = _bosses(top2)  # the learned polycube draws the second boss a little higher
         learned = Polycube(lx, ly, lz, locc)
         if ok:
-            got, planes, collapsed = match_structure([xs, ys, zs], occ, learned)
-            assert collapsed == 1
+            got, planes, collapsed, inserted = match_structure([xs, ys, zs], occ, learned)
+            assert (collapsed, inserted) == (1, 0)
             np.testing.assert_allclose(planes[2], [0.0, 0.2, 0.505])
             np.testing.assert_allclose(planes[0], xs)
         else:
             with pytest.raises(PolycubeError):
                 match_structure([xs, ys, zs], occ, learned)
+
+
+def test_a_thin_step_the_learned_polycube_drew_on_one_plane_is_put_back_but_a_thick_one_is_not():
+    """The other direction: the part's second boss is a little higher (two close planes), the learned
+    polycube has both bosses end on one plane.  The part's thin slab is collapsed to compare the cells, then
+    put back around the learned plane, the part's thickness wide; the solid is the part's."""
+    lx, ly, lz, locc = _bosses(0.5)
+    learned = Polycube(lx, ly, lz, locc)
+    for top2, ok in ((0.51, True), (0.6, False)):
+        xs, ys, zs, occ = _bosses(top2)
+        if ok:
+            got, planes, collapsed, inserted = match_structure([xs, ys, zs], occ, learned)
+            assert (collapsed, inserted) == (0, 1)
+            np.testing.assert_allclose(planes[2], [0.0, 0.2, 0.495, 0.505])
+            np.testing.assert_allclose(got[2], zs)
+        else:
+            with pytest.raises(PolycubeError):
+                match_structure([xs, ys, zs], occ, learned)
+    # cells outside the thin slab that differ: refused
+    xs, ys, zs, occ = _bosses(0.51)
+    occ = occ.copy()
+    occ[1, 0, 1] = True  # the part has no gap between the bosses
+    with pytest.raises(PolycubeError):
+        match_structure([xs, ys, zs], occ, learned)
 
 
 class _Map:

@@ -65,3 +65,9 @@ def test_even_anchors_are_spread_evenly_where_the_pipeline_draws_them_independen
     np.testing.assert_allclose(np.linalg.norm(even[:, 3:], axis=1), 1.0, atol=1e-5)
     assert min_spacing(even[:, :3]) > 3 * min_spacing(uniform[:, :3])
     np.testing.assert_array_equal(even, inference.part_anchors(V, F, 1024, seed=3, normals=True))
+
+
+def test_the_map_column_says_when_a_realisation_put_back_thin_slabs_of_the_part():
+    assert unseen_parts.map_name({"map": "registration (why not the realisation)"}) == "registration"
+    assert unseen_parts.map_name({"map": "exact (realised)", "realised": {"inserted_slabs": 0}}) == "exact"
+    assert unseen_parts.map_name({"map": "exact (realised)", "realised": {"inserted_slabs": 2}}) == "exact, 2 inserted"
