@@ -208,7 +208,7 @@ def map_name(meta: dict) -> str:
 
 def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int = 0,
                  learned_maps: tuple[str, ...] | None = None, snap_planes: float | str | None = "default",
-                 draws: tuple | None = None) -> dict:
+                 draws: tuple | None = None, first_anchors: str = "uniform") -> dict:
     """Mesh through the learned source only (``--polycube learned``: the first draw at ``steps``,
     then the model's further draws, ``polycubenet.policy.LEARNED_DRAWS``; no classical fallback), as
     ``mesh_part`` does: name -> (valid, faithful and at least the quality bar ``min_sj``, SJ min,
@@ -218,7 +218,9 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
     seed (``ModelSource(seed=...)``; 0 as the pipeline runs it), to see what other draws would give.
     ``learned_maps``: ``PipelineConfig.learned_maps`` (None: the default, the registration alone).
     ``snap_planes``: ``PipelineConfig.snap_planes`` (``"default"``: the pipeline's; None: off).
-    ``draws``: the model's further draws (:func:`parse_draws`; None: ``policy.LEARNED_DRAWS``)."""
+    ``draws``: the model's further draws (:func:`parse_draws`; None: ``policy.LEARNED_DRAWS``).
+    ``first_anchors``: the first draw's anchor spread (``ModelSource(anchors=...)``; the further draws take
+    theirs from the table)."""
     from polycubenet import policy
     from polycubenet.inference import ModelSource
     from polycubenet.pipeline import PipelineConfig, mesh_part
@@ -228,7 +230,8 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
         saved = policy.LEARNED_DRAWS
         policy.LEARNED_DRAWS = draws
         try:
-            return mesh_learned(paths, checkpoint, steps, draw_seed, learned_maps, snap_planes)
+            return mesh_learned(paths, checkpoint, steps, draw_seed, learned_maps, snap_planes,
+                                first_anchors=first_anchors)
         finally:
             policy.LEARNED_DRAWS = saved
 
@@ -241,7 +244,7 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
     for p in paths:
         t0 = time.perf_counter()
         try:
-            r = mesh_part(p, ModelSource(checkpoint, steps=steps, seed=draw_seed, device="cpu"), cfg)
+            r = mesh_part(p, ModelSource(checkpoint, steps=steps, seed=draw_seed, device="cpu", anchors=first_anchors), cfg)
             q = r.report
             ok = r.provenance == "learned" and meets_bars(r, cfg)
             draw = 1 + refinement(r.source)[1] if r.source else None
@@ -286,7 +289,10 @@ def main(argv=None) -> int:
     ap.add_argument("--anchors", choices=ANCHOR_SPREADS, default="uniform",
                     help="how the model's anchors are drawn on the part: uniform (the pipeline's: independent "
                          "area-uniform samples) or even (Poisson-disk, blue noise; session 37's measurement, "
-                         "see use_even_anchors)")
+                         "see use_even_anchors), for every draw")
+    ap.add_argument("--first-anchors", choices=ANCHOR_SPREADS, default="uniform",
+                    help="with --mesh: the first draw's anchor spread only (the further draws take theirs from "
+                         "--draws), e.g. --first-anchors even --draws 4/0/n/-,1/1/y/-,1/0/y/-/uniform")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/unseen_parts.json"))
     ap.add_argument("--make-only", metavar="DIR", help="only write the parts as STEP files into DIR and stop (no model): "
                     "a folder for `polycubenet mesh` or benchmarks/bench_auto_cost.py --parts")
@@ -317,9 +323,9 @@ def main(argv=None) -> int:
     if args.snap_planes != "default":
         args.snap_planes = None if args.snap_planes == "off" else float(args.snap_planes)
     meshed = mesh_learned([p for p, _ in made], args.checkpoint, args.steps, args.draw_seed, maps,
-                          args.snap_planes, draws) if args.mesh else {}
+                          args.snap_planes, draws, args.first_anchors) if args.mesh else {}
     ex_meshed = mesh_learned(examples, args.checkpoint, args.steps, args.draw_seed, maps, args.snap_planes,
-                             draws) if args.mesh else {}
+                             draws, args.first_anchors) if args.mesh else {}
     ex_rows, _ = part_rows(args.checkpoint, examples, 4096, args.steps)
     print(f"\n{'part':<18} {'genus':>5} {'first draw':<28} {'learned mesh: SJ, Hausdorff':<28} shape")
     for r in rows:
@@ -343,7 +349,7 @@ def main(argv=None) -> int:
               f"({u1} by the first draw, {ur} realised exactly), examples {e}/{len(examples)} ({e1} by the first "
               f"draw, {er} realised exactly)")
     write_json(args.json, {"checkpoint": args.checkpoint, "snap_planes": args.snap_planes, "seed": args.seed, "family": args.family, "count": len(rows), "steps": args.steps,
-                           "draw_seed": args.draw_seed, "learned_maps": maps, "draws": args.draws,
+                           "draw_seed": args.draw_seed, "learned_maps": maps, "draws": args.draws, "first_anchors": args.first_anchors,
                            "accepted": acc, "examples_accepted": ex_acc, "examples": len(ex_rows),
                            "meshed_valid": counts(meshed)[1] if meshed else None,
                            "meshed_first_draw": counts(meshed)[0] if meshed else None,
