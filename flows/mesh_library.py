@@ -38,7 +38,7 @@ from prefect_dask import DaskTaskRunner
 from polycubenet import library
 from polycubenet.errors import PartError, PolycubeError
 from polycubenet.pipeline import PipelineConfig
-from polycubenet.policy import learned_draws, leaves_source, source_names
+from polycubenet.policy import leaves_source, source_names
 from tasks import mesh as T
 from tasks.common import results_dir
 
@@ -154,9 +154,9 @@ def mesh_library(
     names = library.part_names(paths, hashes)
     draws: tuple[int, ...] = ()
     if polycube == "learned":  # the model's further draws after its first (the policy)
-        from polycubenet.inference import resolve_steps
+        from polycubenet.inference import ModelSource
 
-        draws = learned_draws(resolve_steps(steps, device, checkpoint)[1])
+        draws = ModelSource(checkpoint, steps=steps, device=device).further_draws()
     sources = source_names(polycube, fallback, classical=library.classical_available(), draws=draws)
     parts: list[_Part] = []
     for p, h, n in zip(paths, hashes, names):

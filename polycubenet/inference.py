@@ -271,10 +271,15 @@ class ModelSource:
 
     def further_draws(self) -> tuple[int, ...]:
         """The ``K`` of the model's further draws ``learned+K`` after this source's own
-        (:func:`polycubenet.policy.learned_draws` of its resolved steps)."""
+        (:func:`polycubenet.policy.learned_draws` of its resolved steps; a model that takes no anchors
+        skips a draw that differs from the first only in how its anchors are spread)."""
         from .policy import learned_draws
 
-        return learned_draws(resolve_steps(self.steps, self.device, self.model)[1])
+        try:
+            anchored = bool(load_model(self.model, self.device).model.config.anchored)
+        except (FileNotFoundError, ValueError):  # no readable model: the table as it is (the source fails when it runs)
+            anchored = True
+        return learned_draws(resolve_steps(self.steps, self.device, self.model)[1], anchored=anchored)
 
     def draw_source(self, k: int) -> "ModelSource":
         """The source of the further draw ``learned+k``: the same model and device, at that draw's

@@ -145,15 +145,20 @@ def draw_fallbacks(source: str) -> bool:
     return bool(LEARNED_DRAWS[k - 1][2]) if k else True
 
 
-def learned_draws(steps) -> tuple[int, ...]:
+def learned_draws(steps, anchored: bool = True) -> tuple[int, ...]:
     """The further draws ``K`` (sources ``learned+K``) after a first draw at ``steps``: every entry
     of :data:`LEARNED_DRAWS` that would not repeat the first draw (same steps, seed offset 0, no turn,
-    uniform anchors); none after a first draw at a schedule that is not a step count (the GPU's ``"stride4"``)."""
+    uniform anchors; for a model that takes no anchors, ``anchored=False``, any spread repeats it); none
+    after a first draw at a schedule that is not a step count (the GPU's ``"stride4"``)."""
     if not _int_steps(steps):
         return ()
+
+    def spread(k: int) -> str:
+        return draw_anchors(f"learned+{k}") if anchored else "uniform"
+
     return tuple(k for k in range(1, len(LEARNED_DRAWS) + 1)
                  if (draw_steps(f"learned+{k}", steps), draw_seed(f"learned+{k}"), draw_turn(f"learned+{k}"),
-                     draw_anchors(f"learned+{k}")) != (int(steps), 0, None, "uniform"))
+                     spread(k)) != (int(steps), 0, None, "uniform"))
 
 
 def refinement(source: str) -> tuple[str, int]:

@@ -546,14 +546,17 @@ def test_cli_mesh_exit_code_and_summary(prefect_harness, part_lib, tmp_path, cap
 
 @pytest.fixture(scope="module")
 def tiny_checkpoint(tmp_path_factory) -> Path:
-    """An untrained tiny model: its clouds are noise, so the learned polycube is always rejected."""
+    """An untrained tiny anchored model (as the shipped one: the policy's every draw applies): its clouds are
+    noise, so the learned polycube is always rejected."""
+    import dataclasses
+
     import torch
 
     from polycubenet.model import Diffusion, PolycubeNet, preset
     from polycubenet.model.checkpoint import save_checkpoint
 
     torch.manual_seed(0)
-    cfg = preset("tiny")
+    cfg = dataclasses.replace(preset("tiny"), anchored=True)
     net = PolycubeNet(cfg)
     path = tmp_path_factory.mktemp("ckpt") / "tiny.pt"
     return save_checkpoint(path, {"model_config": cfg.to_dict(), "diffusion": Diffusion().to_dict(),

@@ -234,16 +234,19 @@ def test_a_checkpoints_own_default_steps_are_used_on_cpu(tmp_path):
     assert resolve_steps(None, "cpu", path) == ("cpu", 2) and resolve_steps(7, "cpu", path) == ("cpu", 7)
 
 
-def test_model_source_further_draws_and_their_place_in_the_chain(ckpt, monkeypatch):
+def test_model_source_further_draws_and_their_place_in_the_chain(ckpt, anchored_ckpt, monkeypatch):
     """``draw_source(k)`` is the same model and device at the policy's steps and seed offset of draw
     ``k``; the pipeline puts the draws right after the first (policy.source_names), without one that
     would repeat the first."""
     from polycubenet import policy
     from polycubenet.pipeline import source_chain
 
-    assert ModelSource(ckpt, steps=1, device="cpu").further_draws() == (1, 2, 3)  # the shipped table
-    assert ModelSource(ckpt, steps=4, device="cpu").further_draws() == (2, 3)
-    assert ModelSource(ckpt, steps=1, device="cpu").draw_source(3).anchors == "even"
+    assert ModelSource(anchored_ckpt, steps=1, device="cpu").further_draws() == (1, 2, 3)  # the shipped table
+    assert ModelSource(anchored_ckpt, steps=4, device="cpu").further_draws() == (2, 3)
+    assert ModelSource(anchored_ckpt, steps=1, device="cpu").draw_source(3).anchors == "even"
+    # a model without anchors: the evenly spread draw would repeat the first, so it is skipped
+    assert ModelSource(ckpt, steps=1, device="cpu").further_draws() == (1, 2)
+    assert ModelSource(ckpt, steps=4, device="cpu").further_draws() == (2,)
     LEARNED_DRAWS = ((4, 0, False), (4, 1, False), (4, 2, False))
     monkeypatch.setattr(policy, "LEARNED_DRAWS", LEARNED_DRAWS)
     src = ModelSource(ckpt, steps=1, seed=2, device="cpu")

@@ -82,6 +82,8 @@ def test_the_models_further_draws_follow_the_first(monkeypatch):
     # repeat the first (at 4 steps: never fewer than the first)
     assert LEARNED_DRAWS == ((4, 0, False, None), (1, 1, True, None), (1, 0, True, None, "even"))
     assert learned_draws(1) == (1, 2, 3) and learned_draws(4) == (2, 3) == learned_draws(8)
+    # for a model that takes no anchors the evenly spread draw is the first again
+    assert learned_draws(1, anchored=False) == (1, 2) and learned_draws(4, anchored=False) == (2,)
     assert [draw_fallbacks(s) for s in ("learned", "learned+1", "learned+2", "learned+3")] == [True, False, True, True]
     assert source_label("learned+2") == "learned (draw 3, 1 step, seed +1)"
     assert source_label("learned+3") == "learned (draw 4, 1 step, even anchors)"
