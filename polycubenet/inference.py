@@ -275,11 +275,14 @@ class ModelSource:
         skips a draw that differs from the first only in how its anchors are spread)."""
         from .policy import learned_draws
 
+        steps = resolve_steps(self.steps, self.device, self.model)[1]
+        if not learned_draws(steps):  # none at all (a GPU's stride schedule): no need to read the model
+            return ()
         try:
             anchored = bool(load_model(self.model, self.device).model.config.anchored)
         except (FileNotFoundError, ValueError):  # no readable model: the table as it is (the source fails when it runs)
             anchored = True
-        return learned_draws(resolve_steps(self.steps, self.device, self.model)[1], anchored=anchored)
+        return learned_draws(steps, anchored=anchored)
 
     def draw_source(self, k: int) -> "ModelSource":
         """The source of the further draw ``learned+k``: the same model and device, at that draw's
