@@ -330,7 +330,7 @@ def main(argv=None) -> int:
     print(f"\n{'part':<18} {'genus':>5} {'first draw':<28} {'learned mesh: SJ, Hausdorff':<28} shape")
     for r in rows:
         m = meshed.get(r["part"])
-        ms = "" if m is None else (("valid, draw %d%s" % (m[2], (", realised" + m[6][5:]) if str(m[6]).startswith("exact") else "")) if m[0] else "no") + (
+        ms = "" if m is None else (("valid, draw %d%s" % (m[2], (", " + m[6].replace("exact", "realised", 1)) if str(m[6]).startswith("exact") else "")) if m[0] else "no") + (
             f" {m[1]:.3f}" if isinstance(m[1], float) else f" {m[1]}") + (
             f" {100 * m[4]:.1f}%" if m[4] is not None else "")
         print(f"{r['part']:<18} {r['genus']:>5} {r['category']:<28} {ms:<28} {r['shape']}")

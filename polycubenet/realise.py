@@ -235,8 +235,7 @@ def _expanded_planes(planes: np.ndarray, got: np.ndarray, slabs) -> np.ndarray:
     the learned plane it collapsed onto split into two, ``got``'s thickness apart (at most 0.4 of either
     neighbouring cell, so the planes stay in order)."""
     q = np.asarray(planes, dtype=np.float64)
-    out, j, slabs = [], 0, set(slabs)
-    i = 0
+    out, i, j, slabs = [], 0, 0, set(slabs)
     while i < len(got):
         if i in slabs:  # got's slab (i, i + 1) is the learned plane q[j]
             w = float(got[i + 1] - got[i])
