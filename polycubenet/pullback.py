@@ -173,6 +173,14 @@ class PullbackConfig:
         from the part (:func:`boundary_deviation`, relative to the diagonal) than this and
         than 1.1 x before the release: validity first, then fidelity, then the minimum SJ.
         The undone state gets the final coverage fit instead.
+    release_retry_regularisation : float
+        When a release is undone, the release runs once more from the unreleased state with this (stronger)
+        pull on the released nodes, and is kept when it is valid, better in minimum SJ than the undone state
+        and within the same deviation bound (``meta["projection"]["re_released"]``).  The weak pull lets a
+        released node leave the part's corner where a hex wants it; the strong one moves it only as far as
+        the poor corner needs.  Measured on never-seen machined parts: machined_31_000's classical polycube
+        (3,000 hexes) 0.084 -> 0.313 at 0.58 % of the diagonal; its realised learned polycube 0.000 -> 0.309
+        at 0.4 %.  Not above ``release_regularisation``: off.
     smoothing_sweeps : int
         Guarded Laplacian sweeps (step 5).
     smoothing_step : float
@@ -237,6 +245,7 @@ class PullbackConfig:
     release_rounds: int = 3
     release_regularisation: float = 0.03
     release_max_deviation: float = 0.8 * tol.HAUSDORFF_REL_MAX
+    release_retry_regularisation: float = 0.3
     smoothing_sweeps: int = 5
     smoothing_step: float = 0.5
     coverage_iterations: int = 25
@@ -268,7 +277,7 @@ class PullbackConfig:
         if not 0 <= self.release_sj < 1:
             raise ValueError(f"release_sj must be in [0, 1); got {self.release_sj}")
         if min(self.regularisation, self.boundary_regularisation, self.edge_regularisation,
-               self.release_regularisation) < 0:
+               self.release_regularisation, self.release_retry_regularisation) < 0:
             raise ValueError("regularisation weights must be non-negative")
         if min(self.coverage_iterations, self.final_coverage_iterations) < 0:
             raise ValueError("coverage iteration counts must be non-negative")
@@ -1842,41 +1851,50 @@ def _pull_back_once(
     # ---- feature constraints that keep a hex poor are released, then optimise again
     loc = np.full(len(X), -1, dtype=np.int64)
     loc[bs.nodes] = np.arange(len(bs.nodes))
-    released = 0
+
+    def copy_con(c):
+        return dataclasses.replace(c, mode=c.mode.copy(), curve=c.curve.copy(), released=c.released.copy())
+
+    def release(X, pull):
+        """The release rounds with ``pull`` as the released nodes' regularisation: ``(X, released, unreleased)``,
+        ``unreleased`` the valid state before the first release (None when there was none)."""
+        nonlocal movable
+        released, unreleased, stage = 0, None, "released" if pull == config.release_regularisation else "released_again"
+        for _ in range(config.release_rounds):
+            sj_before = scaled_jacobian_and_degenerate(X, hexes)
+            valid_before = bool(sj_before[0].min() > 0 and not sj_before[1].any())
+            if valid_before and sj_before[0].min() >= config.release_sj:
+                break
+            if valid_before and unreleased is None and not con.released.any():
+                unreleased = (X.copy(), copy_con(con), movable.copy(), boundary_deviation(X, hexes, surf))
+            # the nodes of the poor corners (a corner term below the bar, with its three neighbours)
+            terms = sj_terms(X, hexes)[:, 1:]  # (H, 8) corner terms
+            hb, kb = np.nonzero(terms < config.release_sj)
+            bad_nodes = np.unique(hexes[hb[:, None], CORNER_FRAMES[kb]])
+            li = loc[bad_nodes]
+            li = li[li >= 0]
+            li = li[~con.released[li]]
+            if not len(li):
+                break
+            pinned = (con.mode[li] == _CURVE) | (con.mode[li] == _FIXED)
+            con.mode[li[pinned]] = _CHART
+            con.curve[li[pinned]] = -1
+            released += int(pinned.sum())
+            movable[bs.nodes[li]] = True
+            con.released[li] = True
+            t0 = time.perf_counter()
+            reg = regularisation(len(X))
+            reg[bs.nodes[con.released]] = pull
+            X, _ = optimise_quality(
+                X, hexes, movable=movable, project=proj, project_nodes=bs.nodes, config=config, regularisation=reg,
+            )
+            timings["optimise_released"] = timings.get("optimise_released", 0.0) + time.perf_counter() - t0
+            stages[stage] = _stats(X, hexes)
+        return X, released, unreleased
+
+    X, released, unreleased = release(X, config.release_regularisation)
     reverted = False
-    # the state before any release, kept while it is valid: the release is judged after step 4c
-    unreleased = None
-    for _ in range(config.release_rounds):
-        sj_before = scaled_jacobian_and_degenerate(X, hexes)
-        valid_before = bool(sj_before[0].min() > 0 and not sj_before[1].any())
-        if valid_before and sj_before[0].min() >= config.release_sj:
-            break
-        if valid_before and unreleased is None and not con.released.any():
-            unreleased = (X.copy(), dataclasses.replace(
-                con, mode=con.mode.copy(), curve=con.curve.copy(), released=con.released.copy()
-            ), boundary_deviation(X, hexes, surf))
-        # the nodes of the poor corners (a corner term below the bar, with its three neighbours)
-        terms = sj_terms(X, hexes)[:, 1:]  # (H, 8) corner terms
-        hb, kb = np.nonzero(terms < config.release_sj)
-        bad_nodes = np.unique(hexes[hb[:, None], CORNER_FRAMES[kb]])
-        li = loc[bad_nodes]
-        li = li[li >= 0]
-        li = li[~con.released[li]]
-        if not len(li):
-            break
-        pinned = (con.mode[li] == _CURVE) | (con.mode[li] == _FIXED)
-        con.mode[li[pinned]] = _CHART
-        con.curve[li[pinned]] = -1
-        released += int(pinned.sum())
-        movable[bs.nodes[li]] = True
-        con.released[li] = True
-        t0 = time.perf_counter()
-        X, _ = optimise_quality(
-            X, hexes, movable=movable, project=proj, project_nodes=bs.nodes, config=config,
-            regularisation=regularisation(len(X)),
-        )
-        timings["optimise_released"] = timings.get("optimise_released", 0.0) + time.perf_counter() - t0
-        stages["released"] = _stats(X, hexes)
+    proj_info["re_released"] = False
 
     # ---- step 4c: the coverage fit again, guarded
     def final_coverage(X, con):
@@ -1901,11 +1919,28 @@ def _pull_back_once(
     deviation = boundary_deviation(X, hexes, surf)  # the diagonal is 1 here: relative to it
     if unreleased is not None and con.released.any():
         # a valid mesh is released only where it does not cost the surface fidelity
-        X_un, con_un, dev_un = unreleased
-        if deviation > max(1.1 * dev_un, config.release_max_deviation):
+        X_un, con_un, movable_un, dev_un = unreleased
+        allowed = max(1.1 * dev_un, config.release_max_deviation)
+        if deviation > allowed:
             stages["release_undone"] = {"deviation": deviation, "deviation_before": dev_un, **_stats(X, hexes)}
-            X, con, released, reverted = final_coverage(X_un, con_un), con_un, 0, True
+            con = copy_con(con_un)
+            X, released, reverted = final_coverage(X_un.copy(), con), 0, True
             deviation = boundary_deviation(X, hexes, surf)
+            if config.release_retry_regularisation > config.release_regularisation:
+                # once more from the unreleased state, the released nodes held closer to where they were
+                kept = (X, con, deviation, _stats(X, hexes)["sj_min"])
+                con, movable = copy_con(con_un), movable_un.copy()
+                Xr, n_r, _ = release(X_un.copy(), config.release_retry_regularisation)
+                Xr = final_coverage(Xr, con)
+                dev_r = boundary_deviation(Xr, hexes, surf)
+                st = _stats(Xr, hexes)
+                stages["re-released"] = {"deviation": dev_r, **st}
+                ok = st["inverted"] == 0 and st["degenerate"] == 0 and st["sj_min"] > kept[3]
+                if ok and dev_r <= allowed:
+                    X, deviation, released, reverted = Xr, dev_r, n_r, False
+                else:
+                    X, con, deviation = kept[:3]
+            proj_info["re_released"] = not reverted
     proj_info["released"] = int(released)
     proj_info["release_reverted"] = bool(reverted)
     modes = (("chart", _CHART), ("curve", _CURVE), ("fixed", _FIXED), ("free", _FREE))

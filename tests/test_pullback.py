@@ -387,6 +387,39 @@ def test_a_release_that_costs_fidelity_is_undone_after_the_final_coverage_fit(cy
     assert undone.report.surface["hausdorff"] <= old.report.surface["hausdorff"] + 1e-3
 
 
+@pytest.fixture(scope="module")
+def slanted_end_runs():
+    """A bar whose end is slanted at 54 degrees (a knife edge at its foot) through the classical chain, with and
+    without the second, stronger release (the first release cuts the knife edge and is undone)."""
+    import trimesh
+
+    from polycubenet.pipeline import PipelineConfig, mesh_surface
+
+    pts = np.array([[0, 0, 0], [3, 0, 0], [0, 1, 0], [3, 1, 0], [0, 0, 1], [1.6, 0, 1], [0, 1, 1], [1.6, 1, 1]], float)
+    bar = trimesh.convex.convex_hull(pts)
+    runs = {}
+    for key, pull in {"default": PullbackConfig().release_retry_regularisation, "off": 0.0}.items():
+        cfg = PipelineConfig(polycube="classical", target_hexes=1500, min_sj=None,
+                             pullback=PullbackConfig(release_retry_regularisation=pull))
+        runs[key] = mesh_surface(bar.vertices, bar.faces, None, cfg, part_meta={"genus": 0})
+    return runs
+
+
+def test_an_undone_release_is_tried_again_with_a_stronger_pull(slanted_end_runs):
+    on, off = slanted_end_runs["default"], slanted_end_runs["off"]
+    for run in (on, off):  # the weak release cut the knife edge: undone in both
+        st = run.mesh.meta["stages"]["release_undone"]
+        assert st["deviation"] > PullbackConfig().release_max_deviation
+        assert on.report.valid
+    proj = on.mesh.meta["projection"]
+    assert proj["re_released"] and not proj["release_reverted"] and proj["released"] > 0
+    assert not off.mesh.meta["projection"]["re_released"]
+    # the second release lifts the minimum and stays within the deviation the first one was held to
+    assert on.report.sj_min > off.report.sj_min + 0.02, (on.report.sj_min, off.report.sj_min)
+    assert on.mesh.meta["stages"]["re-released"]["deviation"] <= PullbackConfig().release_max_deviation
+    assert on.report.surface["hausdorff"] <= 0.01
+
+
 @pytest.mark.parametrize("first_min, calls_expected", [(-0.9, 1), (-0.01, 2)])
 def test_a_far_from_valid_result_is_not_recomputed_without_the_coverage_fit(monkeypatch, first_min, calls_expected):
     import polycubenet.pullback as pb
