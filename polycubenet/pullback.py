@@ -1855,11 +1855,11 @@ def _pull_back_once(
     def copy_con(c):
         return dataclasses.replace(c, mode=c.mode.copy(), curve=c.curve.copy(), released=c.released.copy())
 
-    def release(X, pull):
-        """The release rounds with ``pull`` as the released nodes' regularisation: ``(X, released, unreleased)``,
-        ``unreleased`` the valid state before the first release (None when there was none)."""
-        nonlocal movable
-        released, unreleased, stage = 0, None, "released" if pull == config.release_regularisation else "released_again"
+    def release(X, pull, stage):
+        """The release rounds with ``pull`` as the released nodes' regularisation (``stages[stage]`` after each):
+        ``(X, released, unreleased)``, ``unreleased`` the valid state before the first release (None when there
+        was none)."""
+        released, unreleased = 0, None
         for _ in range(config.release_rounds):
             sj_before = scaled_jacobian_and_degenerate(X, hexes)
             valid_before = bool(sj_before[0].min() > 0 and not sj_before[1].any())
@@ -1892,7 +1892,7 @@ def _pull_back_once(
             stages[stage] = _stats(X, hexes)
         return X, released, unreleased
 
-    X, released, unreleased = release(X, config.release_regularisation)
+    X, released, unreleased = release(X, config.release_regularisation, "released")
     reverted = False
     proj_info["re_released"] = False
 
@@ -1930,7 +1930,7 @@ def _pull_back_once(
                 # once more from the unreleased state, the released nodes held closer to where they were
                 kept = (X, con, deviation, _stats(X, hexes)["sj_min"])
                 con, movable = copy_con(con_un), movable_un.copy()
-                Xr, n_r, _ = release(X_un.copy(), config.release_retry_regularisation)
+                Xr, n_r, _ = release(X_un.copy(), config.release_retry_regularisation, "released_again")
                 Xr = final_coverage(Xr, con)
                 dev_r = boundary_deviation(Xr, hexes, surf)
                 st = _stats(Xr, hexes)
@@ -1940,6 +1940,7 @@ def _pull_back_once(
                     X, deviation, released, reverted = Xr, dev_r, n_r, False
                 else:
                     X, con, deviation = kept[:3]
+                    stages["coverage_final"] = _stats(X, hexes)
             proj_info["re_released"] = not reverted
     proj_info["released"] = int(released)
     proj_info["release_reverted"] = bool(reverted)
