@@ -410,7 +410,7 @@ def test_an_undone_release_is_tried_again_with_a_stronger_pull(slanted_end_runs)
     for run in (on, off):  # the weak release cut the knife edge: undone in both
         st = run.mesh.meta["stages"]["release_undone"]
         assert st["deviation"] > PullbackConfig().release_max_deviation
-        assert on.report.valid
+    assert on.report.valid
     proj = on.mesh.meta["projection"]
     assert proj["re_released"] and not proj["release_reverted"] and proj["released"] > 0
     assert not off.mesh.meta["projection"]["re_released"]
