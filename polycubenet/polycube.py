@@ -129,6 +129,46 @@ def edge_contacts(occ: np.ndarray) -> np.ndarray:
     return np.concatenate(out) if out else np.zeros((0, 4), dtype=np.int64)
 
 
+def cell_contacts(padded: np.ndarray, cell) -> int:
+    """How many of the 12 edges of ``cell`` are edge-only contacts (:func:`edge_contacts`) plus how many of
+    its 8 corners are non-manifold vertices (:func:`nonmanifold_vertices`); ``padded`` is the occupancy
+    with one empty layer around it (``np.pad(occ, 1)``).  Flipping one cell changes only these, so the
+    grid's count ``len(edge_contacts) + len(nonmanifold_vertices)`` can be kept up to date flip by flip."""
+    x, y, z = (int(i) for i in cell)
+    W = padded[x : x + 3, y : y + 3, z : z + 3].tolist()  # the cell and its 26 neighbours (plain Python: 27 cells)
+    n = 0
+    for ox in (0, 1):
+        for oy in (0, 1):
+            for oz in (0, 1):
+                code = 0
+                for dx in (0, 1):
+                    for dy in (0, 1):
+                        for dz in (0, 1):
+                            if W[ox + dx][oy + dy][oz + dz]:
+                                code |= 1 << (dx + 2 * dy + 4 * dz)
+                n += bool(_BAD_VERTEX[code])
+    for ob in (0, 1):  # the 12 edges: a 2x2 diagonal pattern in the layer through the cell across each axis
+        for oc in (0, 1):
+            for q00, q10, q01, q11 in (
+                    (W[1][ob][oc], W[1][ob + 1][oc], W[1][ob][oc + 1], W[1][ob + 1][oc + 1]),  # along x
+                    (W[oc][1][ob], W[oc][1][ob + 1], W[oc + 1][1][ob], W[oc + 1][1][ob + 1]),  # along y
+                    (W[ob][oc][1], W[ob + 1][oc][1], W[ob][oc + 1][1], W[ob + 1][oc + 1][1])):  # along z
+                n += q00 == q11 and q10 == q01 and q00 != q10
+    return n
+
+
+def one_solid_without_cavity(occ: np.ndarray) -> bool:
+    """The last checks of :func:`check_occupancy`: not empty, one face-connected solid, no enclosed cavity."""
+    occ = _as_occupancy(occ)
+    if not occ.any():
+        return False
+    _, n_solid = ndimage.label(occ, structure=_FACE6)
+    if n_solid != 1:
+        return False
+    _, n_empty = ndimage.label(~np.pad(occ, 1), structure=_FACE6)
+    return n_empty == 1
+
+
 def edge_cells(axis: int, i: int, j: int, k: int) -> list[tuple[int, int, int]]:
     """The 4 cells around the lattice edge along ``axis`` that starts at vertex ``(i, j, k)`` (a row of
     :func:`edge_contacts`); some may lie outside the grid."""

@@ -38,8 +38,8 @@ from scipy.spatial import cKDTree
 
 from .data import Polycube
 from .errors import PolycubeError
-from .polycube import (check_occupancy, compress, edge_cells, edge_contacts, nonmanifold_vertices, polycube_surface,
-                       solid_genus)
+from .polycube import (cell_contacts, check_occupancy, compress, edge_cells, edge_contacts, nonmanifold_vertices,
+                       one_solid_without_cavity, polycube_surface, solid_genus)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -423,21 +423,78 @@ def _cell_flip_delta(occ: np.ndarray, costs, cell) -> float:
     return float(delta)
 
 
+def _flip_deltas(occ: np.ndarray, costs) -> np.ndarray:
+    """:func:`_cell_flip_delta` of every cell at once (the same sums, in another order: equal up to rounding)."""
+    o = occ.astype(np.int8)
+    delta = np.zeros(occ.shape)
+    for a in range(3):
+        c0, cp, cm = costs[a]
+        n = occ.shape[a]
+        pad = [(0, 0)] * 3
+        pad[a] = (1, 1)
+        p = np.pad(o, pad)
+        prev = np.take(p, np.arange(n), axis=a)  # the cell before each cell along a (0 outside)
+        nxt = np.take(p, np.arange(2, n + 2), axis=a)
+        lo = [np.take(c, np.arange(n), axis=a) for c in (c0, cp, cm)]  # the face before each cell
+        hi = [np.take(c, np.arange(1, n + 1), axis=a) for c in (c0, cp, cm)]
+
+        def cost(b, faces):
+            return np.where(b == 0, faces[0], np.where(b > 0, faces[1], faces[2]))
+
+        flipped = 1 - o
+        delta += cost(prev - flipped, lo) - cost(prev - o, lo) + cost(flipped - nxt, hi) - cost(o - nxt, hi)
+    return delta
+
+
+#: a cell whose vectorised flip delta is within this of the threshold is checked cell by cell
+_DELTA_SLACK = 1e-6
+
+
 def _polish(occ: np.ndarray, costs, sweeps: int) -> np.ndarray:
-    """Flip single cells while that lowers the cost; once the solid is valid it must stay valid."""
+    """Flip single cells while that lowers the cost; once the solid is valid it must stay valid.
+
+    Each sweep visits the cells in index order and flips a cell when its flip lowers the cost (and keeps a
+    valid solid valid).  A flip changes only its own and its six neighbours' deltas, so a sweep needs to
+    look only at the cells whose delta, computed for all cells at once at its start, lowers the cost, and
+    at the later neighbours of a cell it flipped; and the grid's edge- and vertex-only contacts change only
+    around a flipped cell (:func:`~polycubenet.polycube.cell_contacts`), so their count is kept up to date
+    instead of recounted.  The same flips, in the same order, as looking at every cell and checking the whole
+    grid after each (``tests/test_structure.py`` compares both): 26.9 -> 14.3 s for the learned source's
+    four rejected draws on HexGen's ant from the first change alone."""
+    import heapq
+
     occ = occ.copy()
     valid = check_occupancy(occ) is None
+    shape = occ.shape
+    padded = np.pad(occ, 1)
+    bad = _bad_count(occ)  # edge- and vertex-only contacts, kept up to date flip by flip (cell_contacts)
     for _ in range(sweeps):
         changed = False
-        for cell in np.ndindex(occ.shape):
+        heap = np.flatnonzero(_flip_deltas(occ, costs).ravel() < -1e-9 + _DELTA_SLACK).tolist()  # sorted: a heap
+        queued = np.zeros(occ.size, dtype=bool)
+        queued[heap] = True
+        while heap:
+            f = heapq.heappop(heap)
+            cell = tuple(int(i) for i in np.unravel_index(f, shape))
             if _cell_flip_delta(occ, costs, cell) >= -1e-9:
                 continue
-            occ[cell] = not occ[cell]
-            now_valid = check_occupancy(occ) is None
+            pcell = tuple(i + 1 for i in cell)
+            before = cell_contacts(padded, cell)
+            occ[cell] = padded[pcell] = not occ[cell]
+            now_bad = bad - before + cell_contacts(padded, cell)
+            now_valid = now_bad == 0 and one_solid_without_cavity(occ)  # = check_occupancy(occ) is None
             if now_valid or not valid:
-                valid, changed = now_valid, True
+                valid, changed, bad = now_valid, True, now_bad
+                for a in range(3):
+                    if cell[a] + 1 < shape[a]:  # the neighbour before the cell was visited already
+                        nb = list(cell)
+                        nb[a] += 1
+                        g = int(np.ravel_multi_index(nb, shape))
+                        if not queued[g]:
+                            queued[g] = True
+                            heapq.heappush(heap, g)
             else:
-                occ[cell] = not occ[cell]
+                occ[cell] = padded[pcell] = not occ[cell]
         if not changed:
             break
     return occ

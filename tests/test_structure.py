@@ -329,3 +329,74 @@ def test_clean_cloud_snaps_a_learned_cloud_only_and_the_flow_file_keeps_what_it_
     assert cloud.meta["snapped"]["tilted"] == 1
     classical = dataclasses.replace(cloud, meta={"provenance": "classical"})
     assert spread(classical, cfg) == spread(cloud, dataclasses.replace(cfg, snap_planes=None))
+
+
+def _polish_cell_by_cell(occ, costs, sweeps):
+    """The polish as first written: every cell's flip delta, one cell after another, each sweep."""
+    from polycubenet.polycube import check_occupancy
+    from polycubenet.structure import _cell_flip_delta
+
+    occ = occ.copy()
+    valid = check_occupancy(occ) is None
+    for _ in range(sweeps):
+        changed = False
+        for cell in np.ndindex(occ.shape):
+            if _cell_flip_delta(occ, costs, cell) >= -1e-9:
+                continue
+            occ[cell] = not occ[cell]
+            now_valid = check_occupancy(occ) is None
+            if now_valid or not valid:
+                valid, changed = now_valid, True
+            else:
+                occ[cell] = not occ[cell]
+        if not changed:
+            break
+    return occ
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_polish_makes_the_flips_of_the_cell_by_cell_sweep(seed):
+    """The polish looks only at cells whose flip lowers the cost and at the later neighbours of a flipped
+    cell: it must end where visiting every cell in order ends, and its all-cells delta must be the scalar one."""
+    from polycubenet.structure import _cell_flip_delta, _flip_deltas, _polish
+
+    rng = np.random.default_rng(seed)
+    shape = tuple(int(n) for n in rng.integers(3, 8, size=3))
+    costs = []
+    for a in range(3):
+        fshape = list(shape)
+        fshape[a] += 1
+        # integer-valued vote counts (as the evidence gives) and fractional coverage terms
+        costs.append(tuple(rng.integers(0, 6, size=fshape) + rng.random(fshape) * (k > 0) for k in range(3)))
+    if seed % 2:  # a valid solid (a block with a notch) that must stay valid
+        occ = np.ones(shape, dtype=bool)
+        occ[: shape[0] // 2, : shape[1] // 2, :] = False
+    else:
+        occ = rng.random(shape) < 0.6
+    deltas = _flip_deltas(occ, costs)
+    for cell in np.ndindex(shape):
+        assert deltas[cell] == pytest.approx(_cell_flip_delta(occ, costs, cell), abs=1e-9)
+    got = _polish(occ, costs, 6)
+    want = _polish_cell_by_cell(occ, costs, 6)
+    assert (got != occ).any()  # the case flips something
+    np.testing.assert_array_equal(got, want)
+
+
+def test_cell_contacts_keep_the_grid_count_of_contacts_up_to_date():
+    """Flipping cells one by one and updating the count by each cell's own edges and corners must give the
+    count of the whole grid every time."""
+    from polycubenet.polycube import cell_contacts, edge_contacts, nonmanifold_vertices
+
+    rng = np.random.default_rng(0)
+    occ = rng.random((5, 6, 4)) < 0.5
+    padded = np.pad(occ, 1)
+    count = len(edge_contacts(occ)) + len(nonmanifold_vertices(occ))
+    seen = set()
+    for _ in range(200):
+        cell = tuple(int(rng.integers(n)) for n in occ.shape)
+        before = cell_contacts(padded, cell)
+        occ[cell] = padded[tuple(i + 1 for i in cell)] = not occ[cell]
+        count += cell_contacts(padded, cell) - before
+        assert count == len(edge_contacts(occ)) + len(nonmanifold_vertices(occ))
+        seen.add(count)
+    assert len(seen) > 5  # the count moved
