@@ -459,8 +459,8 @@ def _polish(occ: np.ndarray, costs, sweeps: int) -> np.ndarray:
     at the later neighbours of a cell it flipped; and the grid's edge- and vertex-only contacts change only
     around a flipped cell (:func:`~polycubenet.polycube.cell_contacts`), so their count is kept up to date
     instead of recounted.  The same flips, in the same order, as looking at every cell and checking the whole
-    grid after each (``tests/test_structure.py`` compares both): 26.9 -> 14.3 s for the learned source's
-    four rejected draws on HexGen's ant from the first change alone."""
+    grid after each (``tests/test_structure.py`` compares both): 26.9 -> 8.3 s for the learned source's
+    four rejected draws on HexGen's ant."""
     import heapq
 
     occ = occ.copy()
