@@ -160,13 +160,7 @@ def cell_contacts(padded: np.ndarray, cell) -> int:
 def one_solid_without_cavity(occ: np.ndarray) -> bool:
     """The last checks of :func:`check_occupancy`: not empty, one face-connected solid, no enclosed cavity."""
     occ = _as_occupancy(occ)
-    if not occ.any():
-        return False
-    _, n_solid = ndimage.label(occ, structure=_FACE6)
-    if n_solid != 1:
-        return False
-    _, n_empty = ndimage.label(~np.pad(occ, 1), structure=_FACE6)
-    return n_empty == 1
+    return bool(occ.any()) and _solid_reason(occ) is None
 
 
 def edge_cells(axis: int, i: int, j: int, k: int) -> list[tuple[int, int, int]]:
@@ -206,6 +200,11 @@ def check_occupancy(occ: np.ndarray) -> str | None:
     v = nonmanifold_vertices(occ)
     if len(v):
         return f"non-manifold: {len(v)} vertex-only contact(s), first at vertex {tuple(int(i) for i in v[0])}"
+    return _solid_reason(occ)
+
+
+def _solid_reason(occ: np.ndarray) -> str | None:
+    """Why the non-empty ``occ`` is not one face-connected solid without an enclosed cavity, or None."""
     _, n_solid = ndimage.label(occ, structure=_FACE6)
     if n_solid != 1:
         return f"disconnected: {n_solid} solid components"
