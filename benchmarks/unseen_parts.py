@@ -278,7 +278,7 @@ def main(argv=None) -> int:
                     help="the model's noise seed for --mesh (0: as the pipeline draws; others: what further draws give)")
     ap.add_argument("--learned-maps", default=None,
                     help="with --mesh: the maps a learned polycube is pulled back through, in order, comma-separated "
-                         "(PipelineConfig.learned_maps: registration, anchors; default: the registration alone)")
+                         "(PipelineConfig.learned_maps: registration, refined, anchors; default: the registration alone)")
     ap.add_argument("--snap-planes", default="default", metavar="DEG|off",
                     help="PipelineConfig.snap_planes: each planar part face tilted at least DEG from its label's axis "
                          "onto one plane in the learned cloud; off: never (default: the pipeline's)")

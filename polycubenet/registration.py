@@ -911,6 +911,39 @@ class Correspondence(_NpzRecord):
         return y + field_displacement(y, self.landmarks, self.coef, float(self.meta["beta"]))
 
 
+#: the finer field of :func:`refine` (canonical frame, diagonal 1): the registration's field (``CPD_BETA``) is
+#: too smooth to bend the polycube's axis-aligned steps onto a slanted or recessed face of the part
+REFINE_BETA = 0.2
+
+
+@dataclasses.dataclass
+class RefinedCorrespondence:
+    """A correspondence's map followed by a second, finer CPD field fitted from where the first one put the
+    polycube cloud (:func:`refine`): ``map_points(z) = y + v2(y)`` with ``y = base.map_points(z)``."""
+
+    base: Correspondence
+    landmarks: np.ndarray
+    coef: np.ndarray
+    beta: float
+    meta: dict = dataclasses.field(default_factory=dict)
+
+    def map_points(self, points: np.ndarray) -> np.ndarray:
+        y = self.base.map_points(points)
+        return y + field_displacement(y, self.landmarks, self.coef, self.beta)
+
+
+def refine(corr: Correspondence, part_points: np.ndarray, *, beta: float = REFINE_BETA, lam: float = CPD_LAMBDA,
+           **cpd_kw) -> RefinedCorrespondence:
+    """A second CPD pass with a narrower kernel (``beta``), from the polycube cloud as ``corr`` maps it onto the
+    fixed part samples ``part_points`` ``(N, 3)``: the first field's large, smooth motion is kept and the second
+    one adds the local bend (a step of the polycube onto a slanted face).  ``cpd_kw``: :func:`cpd_nonrigid`'s."""
+    Y = corr.map_points(corr.points)
+    cpd = cpd_nonrigid(Y, _as_points(part_points, "part_points"), beta=beta, lam=lam, **cpd_kw)
+    return RefinedCorrespondence(base=corr, landmarks=cpd.landmarks, coef=cpd.coef, beta=float(cpd.beta),
+                                 meta={"beta": float(cpd.beta), "lam": float(lam), "sigma2": cpd.sigma2,
+                                       "iterations": cpd.iterations})
+
+
 def _project_to_mesh(points: np.ndarray, V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Closest surface point of each of ``points : (K, 3)`` on ``(V, F)``: ``face_ids (K,)``, ``barycentrics (K, 3)``."""
     try:

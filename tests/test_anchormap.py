@@ -63,8 +63,9 @@ def test_a_learned_polycube_whose_registration_misses_the_slant_is_meshed_throug
     identity = _Map(lambda X: np.asarray(X, float))
     plain, _ = pull_back_learned(poly, identity, V, F, cfg)  # no anchors: the registration alone
     assert plain.meta["map"] == "registration" and not ends_chain(plain.meta, cfg.min_sj)
-    by_default, _ = pull_back_learned(poly, identity, V, F, PipelineConfig(target_hexes=1500, realise=None),
-                                      anchored=(P, N, A))
+    assert "anchors" not in PipelineConfig().learned_maps  # an option, not the default
+    registration_alone = PipelineConfig(target_hexes=1500, realise=None, learned_maps=("registration",))
+    by_default, _ = pull_back_learned(poly, identity, V, F, registration_alone, anchored=(P, N, A))
     assert by_default.meta["map"] == "registration"
     mesh, used = pull_back_learned(poly, identity, V, F, cfg, anchored=(P, N, A))
     assert mesh.meta["map"] == "anchors" and ends_chain(mesh.meta, cfg.min_sj)

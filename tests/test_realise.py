@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import trimesh
@@ -147,7 +149,8 @@ def test_a_learned_polycube_whose_registration_misses_the_slant_is_meshed_throug
     V, F, poly, _ = slanted_l
     cfg = PipelineConfig(target_hexes=1500)
     identity = _Map(lambda P: np.asarray(P, float))
-    plain, _ = pull_back_learned(poly, identity, V, F, PipelineConfig(target_hexes=1500, realise=None))
+    registration_alone = PipelineConfig(target_hexes=1500, realise=None, learned_maps=("registration",))
+    plain, _ = pull_back_learned(poly, identity, V, F, registration_alone)
     assert plain.meta["map"] == "registration" and not ends_chain(plain.meta, cfg.min_sj)
     mesh, used = pull_back_learned(poly, identity, V, F, cfg)
     assert mesh.meta["map"] == "exact (realised)" and ends_chain(mesh.meta, cfg.min_sj)
@@ -220,3 +223,40 @@ def test_a_realised_mesh_under_the_bar_is_pulled_back_again_without_the_pillow_l
     assert calls == want
     assert (mesh.meta["interior"], mesh.meta["pillowed"]) == want[-1]  # the last one tried is the best here
     assert mesh.meta["sj_min"] == (0.31 if want[-1][1] is False else pillowed_sj)
+
+
+def test_the_learned_steps_run_in_their_order_and_stop_at_the_first_mesh_that_ends_the_chain(slanted_l, monkeypatch):
+    """``learned_maps`` orders the maps and the exact realisation (``exact``, last when not named): with the
+    realisation before the refined map, a realised mesh that ends the chain leaves the refined map unfitted;
+    with the refined map first it is fitted and tried before the realisation, but only after a near miss
+    (``pipeline.near_miss``): the identity's mesh of the slanted end is far off the part, so it is skipped."""
+    from polycubenet import pipeline, registration
+    from polycubenet.pipeline import PipelineConfig, pull_back_learned
+    from polycubenet.policy import distance_to_part
+
+    V, F, poly, _ = slanted_l
+    identity = _Map(lambda P: np.asarray(P, float))
+    identity.points = poisson_disk(*polycube_surface(poly.xs, poly.ys, poly.zs, poly.occupancy), 1000, seed=0).points
+    fitted = []
+    real_refine = registration.refine
+
+    def counting(corr, part_points, **kw):
+        fitted.append(len(part_points))
+        return real_refine(corr, part_points, **kw)
+
+    monkeypatch.setattr(registration, "refine", counting)
+    cfg = PipelineConfig(target_hexes=1500, learned_maps=("registration", "exact", "refined"))
+    mesh, used = pull_back_learned(poly, identity, V, F, cfg)
+    assert mesh.meta["map"] == "exact (realised)" and fitted == []
+    refined_first = PipelineConfig(target_hexes=1500, learned_maps=("registration", "refined"))  # exact appended
+    alone, _ = pull_back_learned(poly, identity, V, F, dataclasses.replace(refined_first, realise=None,
+                                                                            learned_maps=("registration",)))
+    assert not pipeline.near_miss(alone) and distance_to_part(alone.meta) > 0.02
+    mesh, _ = pull_back_learned(poly, identity, V, F, refined_first)
+    assert fitted == [] and mesh.meta["map"] == "exact (realised)"
+    monkeypatch.setattr(pipeline, "REFINE_NEAR_MISS", 1e3)  # every valid mesh a near miss
+    mesh, _ = pull_back_learned(poly, identity, V, F, refined_first)
+    assert fitted == [refined_first.n_sample]
+    assert mesh.meta["map"] in ("refined", "exact (realised)")
+    with pytest.raises(ValueError, match="learned_maps"):
+        pull_back_learned(poly, identity, V, F, PipelineConfig(target_hexes=1500, learned_maps=("exact",)))
