@@ -500,8 +500,9 @@ def partition_pullback(extracted: str | os.PathLike, corr: str | os.PathLike, lo
                        dest: str | os.PathLike, config: PipelineConfig) -> Path:
     """Partition the polycube into hexes (at ``config``'s size: the source's own,
     :func:`polycubenet.policy.source_config`) and pull them back onto the part (canonical frame); a learned
-    polycube as :func:`polycubenet.pipeline.pull_back_learned` does (realised exactly when the registration's
-    mesh would not end the chain; the file's meta then carries the realised polycube)."""
+    polycube as :func:`polycubenet.pipeline.pull_back_learned` does (the steps of ``config.learned_maps``: realised
+    exactly, or through the refined map, when the registration's mesh would not end the chain; a realised mesh's
+    file carries the realised polycube in its meta)."""
     from .registration import Correspondence
 
     from .pipeline import _pull_back_classical, own_diagonal, partition_polycube, pull_back_learned
