@@ -510,14 +510,14 @@ def partition_pullback(extracted: str | os.PathLike, corr: str | os.PathLike, lo
     ext, ext_meta = _load_arrays(extracted)  # one read: the polycube, and the cleaned cloud with its anchors
     poly = _extracted_polycube(ext, ext_meta)
     anchored = (ext["points"], ext["normals"], ext["anchors"]) if "anchors" in ext else None
-    part, _, T, lmeta = read_loaded(loaded)
+    part, sample, T, lmeta = read_loaded(loaded)
     diagonal = own_diagonal(part.vertices, T)
     arrays, _ = _load_arrays(corr)
     if all(k in arrays for k in _EXACT_MAP):  # classical: the same pullback as pipeline.mesh_surface
         return _pull_back_classical(partition_polycube(poly, config), _surface_map(arrays), part.vertices, part.faces,
                                     config, diagonal).save(dest)
     mesh, _ = pull_back_learned(poly, Correspondence.load(corr), part.vertices, part.faces, config, diagonal,
-                                lmeta.get("name"), anchored=anchored)
+                                lmeta.get("name"), anchored=anchored, part_points=sample.points)
     return mesh.save(dest)
 
 

@@ -342,7 +342,8 @@ def mesh_surface(
                     mesh_c = _pull_back_classical(mesh_pc, corr, Vc, F, config, own_diagonal(Vc, T))
                 else:
                     mesh_c, poly = pull_back_learned(poly, corr, Vc, F, cfg, own_diagonal(Vc, T), name, mesh_pc,
-                                                     anchored=None if A is None else (P, N, A))
+                                                     anchored=None if A is None else (P, N, A),
+                                                     part_points=sample.points)
             return Attempt(label, dict(mesh_c.meta), payload=(cloud, poly, mesh_c), seconds=tracker.seconds,
                            label=source_label(label))
 
@@ -447,7 +448,8 @@ def cloud_polycube(cloud: PolycubeCloud, P: np.ndarray, N: np.ndarray, genus: in
 def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, config: PipelineConfig,
                       diagonal: float | None = None, part: str | None = None,
                       partitioned: HexMesh | None = None,
-                      anchored: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> tuple[HexMesh, Polycube]:
+                      anchored: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                      part_points: np.ndarray | None = None) -> tuple[HexMesh, Polycube]:
     """A learned polycube's partition and pull-back (both drivers call this): through the steps of
     ``config.learned_maps`` in turn until one mesh ends the chain (:func:`polycubenet.policy.ends_chain`: valid,
     on the part, not under the bar), the best mesh (:func:`polycubenet.policy.mesh_rank`) and its polycube kept.
@@ -458,13 +460,15 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
     :func:`polycubenet.realise.variants` in turn until a mesh ends the chain; ``exact`` runs last when
     ``learned_maps`` does not name it, never when ``config.realise`` is None.  ``meta["map"]`` says which step
     made the mesh (and why the realisation did not).  ``partitioned``: ``poly``'s partition when the caller
-    made it already."""
+    made it already; ``part_points``: the part's samples the registration was fitted to (the refined map's
+    target; drawn again as the pipeline draws them when not given)."""
     mesh_pc = partition_polycube(poly, config) if partitioned is None else partitioned
     steps = [n for n in config.learned_maps if n != "exact" or config.realise is not None]
     if config.realise is not None and "exact" not in steps:
         steps.append("exact")
     maps = dict(_learned_maps(poly, corr, anchored, [n for n in config.learned_maps if n != "exact"],
-                              part_points=lambda: poisson_disk(Vc, F, config.n_sample, seed=config.seed).points))
+                              part_points=lambda: part_points if part_points is not None else
+                              poisson_disk(Vc, F, config.n_sample, seed=config.seed).points))
     if not any(n in maps for n in steps):  # only the anchors asked for, and the cloud has none: the registration
         first = next(i for i, n in enumerate(steps) if n != "exact")
         steps[first] = "registration"

@@ -95,7 +95,7 @@ def test_the_flow_stages_carry_each_kept_points_anchor_to_the_pull_back(slanted_
     np.testing.assert_allclose(arrays["anchors"], arrays["points"] + [10.0, 0.0, 0.0])
     seen = {}
 
-    def fake(poly, corr, Vc, F, config, diagonal=None, part=None, partitioned=None, anchored=None):
+    def fake(poly, corr, Vc, F, config, diagonal=None, part=None, partitioned=None, anchored=None, part_points=None):
         seen["anchored"] = anchored
         return HexMesh(np.zeros((8, 3)), np.arange(8)[None], meta={"valid": True}), poly
 
