@@ -190,6 +190,31 @@ def test_flatten_ramps_leaves_axis_faces_and_steps_alone():
     assert n_ramps == 0 and n_moved == 0 and np.array_equal(flat, P)
 
 
+@pytest.mark.parametrize("deg,seed", [(30, 3), (40, 0), (45, 2)])
+def test_flatten_ramps_takes_a_sparse_ramp_whole(deg, seed, monkeypatch):
+    """A generated ramp is sparser than the faces around it (a quarter of the slanted end's points
+    here): its slanted points split into patches a flood of 2.5 spacings does not join.  Every point of
+    the ramp moves, and no point off it; without the on-plane pass some of the ramp stays behind."""
+    import polycubenet.structure as structure
+    from polycubenet.structure import axis_labels, flatten_ramps, point_spacing
+
+    P, N = _slanted_block(deg, seed)
+    on = np.abs(P[:, 0] - (-0.4 + (P[:, 2] + 0.1) * np.tan(np.radians(deg)))) < 1e-6
+    keep = ~on | (np.random.default_rng(seed).random(len(P)) < 0.25)
+    P, N, ramp = P[keep], N[keep], on[keep]
+    axis, sign = axis_labels(N)
+
+    def moved():
+        flat, n_ramps, _ = flatten_ramps(P, axis, sign, point_spacing(P))
+        assert n_ramps >= 1
+        return np.any(flat != P, axis=1)
+
+    got = moved()
+    assert got[ramp].all() and not got[~ramp].any()
+    monkeypatch.setattr(structure, "RAMP_ON_PLANE", False)
+    assert not moved()[ramp].all()
+
+
 def test_only_a_generated_cloud_gets_the_generator_fallbacks():
     """With the fallbacks configured, the pipeline extracts a learned cloud with them, a classical
     flattening's cloud without them: the same slanted-end cloud gives a box as ``learned`` and is

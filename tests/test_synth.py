@@ -229,6 +229,56 @@ def test_a_slanted_end_cuts_the_whole_end_face_and_leaves_the_rest():
     assert DeformationMap.from_dict(DeformationMap([cut]).to_dict()).maps[0] == cut
 
 
+def test_a_plane_cut_slants_the_end_and_leaves_the_walls_near_it_straight():
+    """``SlantEnd(profile="cut")`` puts the end face on the same slanted plane as the smooth fade, but only a
+    slab a little deeper than the cut moves: a wall normal to x at x = -0.2 (a hole's or a step's) stays one
+    plane, where the smooth fade over twice the cut's depth tilts it; faces normal to y and z stay in their
+    planes; invertible, and a cut too shallow for its depth folds."""
+    lo, hi = -0.5 * np.ones(3), 0.5 * np.ones(3)
+    args = dict(axis=0, by=2, face=0.5, sign=1.0, pivot=-0.2, side=1.0, slope=0.7)
+    smooth = SlantEnd(**args, fade=2 * 0.7 * 0.7)
+    cut = SlantEnd(**args, fade=1.2 * 0.7 * 0.7, profile="cut")
+    ok, worst = check_invertible(cut, lo, hi, np.random.default_rng(3), n=8192)
+    assert ok and worst > 0.1, worst
+    g = np.linspace(-0.5, 0.5, 21)
+    face = np.array([[0.5, y, z] for y in g for z in g])
+    np.testing.assert_allclose(cut(face), smooth(face), atol=1e-12)  # the same slanted end
+    wall = face.copy()
+    wall[:, 0] = -0.2
+    assert np.ptp(cut(wall)[:, 0]) < 1e-12 and np.ptp(smooth(wall)[:, 0]) > 0.01
+    X = lo + (hi - lo) * np.random.default_rng(4).random((4096, 3))
+    np.testing.assert_allclose(cut(X)[:, 1:], X[:, 1:], atol=1e-12)  # only x moves
+    assert DeformationMap.from_dict(DeformationMap([cut]).to_dict()).maps[0] == cut
+    assert not check_invertible(SlantEnd(**args, fade=0.8 * 0.7 * 0.7, profile="cut"), lo, hi,
+                                np.random.default_rng(3), n=8192)[0]
+
+
+def test_cut_slants_keep_their_slab_clear_of_the_faces_they_would_tilt():
+    """``random_deformation(cut_ends=True)`` places each cut so that no ``keep_out`` face normal to the cut's
+    axis lies in its slab past the pivot (a hole's wall there would come out tilted): with a hole box near
+    both x ends of a bar, over many seeds cuts are still placed (most of them of an x end) and none moves the
+    hole's x faces off their planes."""
+    from polycubenet.synth.deform import random_deformation
+
+    lo, hi = -0.5 * np.ones(3), 0.5 * np.ones(3)
+    lo[0], hi[0] = -1.0, 1.0
+    holes = [(np.array([-0.85, -0.1, -0.5]), np.array([-0.7, 0.1, 0.5])),
+             (np.array([0.7, -0.1, -0.5]), np.array([0.85, 0.1, 0.5]))]
+    g = np.linspace(-0.5, 0.5, 11)
+    walls = np.array([[x, y, z] for x in (-0.85, -0.7, 0.7, 0.85) for y in (-0.1, 0.0, 0.1) for z in g])
+    placed = ends = 0
+    for s in range(80):
+        d = random_deformation(np.random.default_rng(s), lo, hi, whole_ends=True, strength=0.0, cut_ends=True,
+                               keep_out=holes)
+        for m in d.maps:
+            if m.kind == "slant_end":
+                placed += 1
+                assert m.profile == "cut"
+                np.testing.assert_allclose(m(walls)[:, 0], walls[:, 0], atol=1e-12)  # the x walls stay planes
+                ends += m.axis == 0
+    assert placed >= 10 and ends >= 5
+
+
 def test_whole_slants_add_slanted_end_cuts_to_valid_pairs():
     """``whole_slants``: some pairs get a ``slant_end`` map (make_pair checks each map's Jacobian and the
     genus itself); without the option none does."""

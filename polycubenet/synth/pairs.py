@@ -39,7 +39,7 @@ from ..atomic import save_npz
 from ..data import Polycube, SurfaceSample
 from ..frame import Transform, canonicalize, face_normals_areas
 from ..sampling import interpolate, poisson_disk, uniform_sample
-from .deform import DeformationMap, check_invertible, random_deformation
+from .deform import DeformationMap, check_invertible, empty_cells, random_deformation
 from ..tol import AREA_REL
 from .polycube import convex_edges, polycube_quads, random_polycube, surface_genus, transform_grid, triangulate_quads
 
@@ -218,6 +218,7 @@ def make_pair(
     max_strength: float | None = None,
     tall_bosses: bool = False,
     full_slants: float = 0.0,
+    cut_slants: bool = False,
 ) -> SynthPair:
     """Generate one pair from ``seed`` (see the module docstring for the steps).
 
@@ -245,6 +246,9 @@ def make_pair(
     full_slants : float in [0, 1], with ``whole_slants``: the share of those cuts that run across the whole
         end, leaving none of its face (``random_deformation(full_ends=...)``).  0: a seed gives the pair it
         gave before.
+    cut_slants : bool, with ``whole_slants``: each cut a plane cut that leaves the part's other faces where they
+        are (``random_deformation(cut_ends=True)``, placed away from the polycube's empty cells) instead of a
+        smooth fade that shears the walls near it.  Off, a seed gives the pair it gave before.
 
     Returns
     -------
@@ -268,7 +272,9 @@ def make_pair(
         timings["polycube"] += t1 - t0
         edges = convex_edges(pc.xs, pc.ys, pc.zs, pc.occupancy)
         dmap = random_deformation(rng, lo, hi, holes, edges, strength=strength, slanted_ends=cad_features,
-                                   whole_ends=whole_slants, max_strength=max_strength, full_ends=full_slants)
+                                   whole_ends=whole_slants, max_strength=max_strength, full_ends=full_slants,
+                                   cut_ends=cut_slants,
+                                   keep_out=empty_cells(pc.xs, pc.ys, pc.zs, pc.occupancy) if cut_slants else ())
         ok, min_det = check_invertible(dmap, lo, hi, rng, extra=V0)
         timings["deformation"] += time.perf_counter() - t1
         if not ok:

@@ -95,11 +95,14 @@ def render_pairs(pairs: list[SynthPair], path: str | Path, *, columns: int = 2, 
 
 
 def preview(out: str | Path, count: int = 6, seed: int = 0, columns: int = 2, *, cad_features: bool = False,
-            whole_slants: bool = False, max_strength: float | None = None, full_slants: float = 0.0) -> Path:
+            whole_slants: bool = False, max_strength: float | None = None, full_slants: float = 0.0,
+            cut_slants: bool = False) -> Path:
     """Render pairs ``0 .. count-1`` of the dataset ``seed`` (made with ``cad_features`` /
-    ``whole_slants`` / ``max_strength`` / ``full_slants``, as ``python -m polycubenet.synth`` makes them) to ``out``."""
+    ``whole_slants`` / ``max_strength`` / ``full_slants`` / ``cut_slants``, as ``python -m polycubenet.synth``
+    makes them) to ``out``."""
     pairs = [make_pair(pair_seed(seed, i), n_cond=16, n_target=16, sampler="uniform", cad_features=cad_features,
-                       whole_slants=whole_slants, max_strength=max_strength, full_slants=full_slants)
+                       whole_slants=whole_slants, max_strength=max_strength, full_slants=full_slants,
+                       cut_slants=cut_slants)
              for i in range(count)]
     return render_pairs(pairs, out, columns=columns)
 
@@ -114,9 +117,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--whole-slants", action="store_true", help="the pairs of a set made with --whole-slants")
     ap.add_argument("--max-strength", type=float, default=None, help="the pairs of a set made with --max-strength")
     ap.add_argument("--full-slants", type=float, default=0.0, help="the pairs of a set made with --full-slants")
+    ap.add_argument("--cut-slants", action="store_true", help="the pairs of a set made with --cut-slants")
     args = ap.parse_args(argv)
     path = preview(args.out, args.count, args.seed, args.columns, cad_features=args.cad_features,
-                   whole_slants=args.whole_slants, max_strength=args.max_strength, full_slants=args.full_slants)
+                   whole_slants=args.whole_slants, max_strength=args.max_strength, full_slants=args.full_slants,
+                   cut_slants=args.cut_slants)
     print(f"wrote {path}", file=sys.stderr)
     return 0
 
