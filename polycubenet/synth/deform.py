@@ -561,8 +561,9 @@ def random_deformation(
         stream is the one before this option existed.
     cut_ends : bool, with ``whole_ends``: the cut as a plane cut (:class:`SlantEnd` ``profile="cut"``): a linear
         fade over 1.15-1.5 times the cut's depth instead of the smooth one over twice it, placed only where
-        its slab holds no face of a ``keep_out`` box normal to the cut's axis (up to 24 draws, else no cut).  The smooth fade shears
-        every hole wall and step within twice the cut's depth, which a machined part's plane cut does not:
+        its slab holds no face of a ``keep_out`` box normal to the cut's axis (up to 24 draws, else no cut).
+        The smooth fade shears every hole wall and step within twice the cut's depth, which a machined part's
+        plane cut does not:
         a model trained on it tilts a real part's straight walls near a slanted end (up to 10-22 degrees on
         never-seen machined parts, where parts without a slanted end keep them within 0.6 degrees).
     keep_out : list of ``(lo (3,), hi (3,))`` boxes whose faces a cut may not tilt: the polycube's empty cells within
