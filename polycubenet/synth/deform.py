@@ -486,6 +486,18 @@ def empty_cells(xs, ys, zs, occ) -> list[tuple[np.ndarray, np.ndarray]]:
             for c in np.argwhere(~np.asarray(occ, dtype=bool))]
 
 
+def _draw_tilt(rng: np.random.Generator, lo, hi, ext, by: int, side: float,
+               full_ends: float) -> tuple[float, float, float]:
+    """``(pivot, reach, slope)`` of a whole-end cut tilted along ``by`` toward ``side``: the pivot at 20-70 % of the
+    end's extent on ``by`` (or, a ``full_ends`` share of the time, on the edge it tilts from: across the whole end),
+    the distance past it to the end's edge, and the tangent of a 20-45 degree tilt."""
+    pivot = float(lo[by] + rng.uniform(0.2, 0.7) * ext[by])
+    if full_ends > 0 and rng.random() < full_ends:
+        pivot = float(lo[by] if side > 0 else hi[by])
+    reach = float(hi[by] - pivot if side > 0 else pivot - lo[by])
+    return pivot, reach, float(np.tan(np.radians(rng.uniform(20.0, 45.0))))
+
+
 def _place_cut(rng: np.random.Generator, lo, hi, ext, axis: int, sign: float,
                full_ends: float, keep_out, tries: int = 24) -> SlantEnd | None:
     """A plane cut of one end (:class:`SlantEnd` ``profile="cut"``) whose slab holds no face normal to ``axis`` of a
@@ -495,11 +507,7 @@ def _place_cut(rng: np.random.Generator, lo, hi, ext, axis: int, sign: float,
     for _ in range(tries):
         by = int(rng.choice([a for a in range(3) if a != axis]))
         side = float(rng.choice([-1.0, 1.0]))
-        pivot = float(lo[by] + rng.uniform(0.2, 0.7) * ext[by])
-        if full_ends > 0 and rng.random() < full_ends:
-            pivot = float(lo[by] if side > 0 else hi[by])
-        reach = float(hi[by] - pivot if side > 0 else pivot - lo[by])
-        slope = float(np.tan(np.radians(rng.uniform(20.0, 45.0))))
+        pivot, reach, slope = _draw_tilt(rng, lo, hi, ext, by, side, full_ends)
         fade = float(rng.uniform(1.15, 1.5)) * slope * reach
         if fade > 0.6 * ext[axis] or reach <= 0:
             continue
@@ -634,11 +642,7 @@ def random_deformation(
         axis = int(np.argmax(ext)) if rng.random() < 0.7 else int(rng.integers(3))  # mostly an end of the length
         by = int(rng.choice([a for a in range(3) if a != axis]))
         sign, side = float(rng.choice([-1.0, 1.0])), float(rng.choice([-1.0, 1.0]))
-        pivot = float(lo[by] + rng.uniform(0.2, 0.7) * ext[by])
-        if full_ends > 0 and rng.random() < full_ends:  # across the whole end: the pivot on the edge it tilts from
-            pivot = float(lo[by] if side > 0 else hi[by])
-        reach = float(hi[by] - pivot if side > 0 else pivot - lo[by])
-        slope = float(np.tan(np.radians(rng.uniform(20.0, 45.0))))
+        pivot, reach, slope = _draw_tilt(rng, lo, hi, ext, by, side, full_ends)
         slope = min(slope, 0.8 * ext[axis] / (2.0 * reach))  # the fade (2 slope reach) within 80 % of the length
         if cut_ends:
             cut = _place_cut(rng, lo, hi, ext, axis, sign, full_ends, keep_out)
