@@ -1,14 +1,15 @@
 """How far the model takes a part's slanted faces toward their polycube planes (a share of the way), by feature.
 
     python benchmarks/slant_moves.py --data FEATURES [--count 256] [--checkpoints F ...] [--names N ...]
-        [--json benchmarks/results/slant_moves.json]
+        [--steps 1 [8 ...]] [--json benchmarks/results/slant_moves.json]
 
 FEATURES: held-out pairs with the training mix's machined features, from a seed never trained on
 (``python -m polycubenet.synth --out FEATURES --count 256 --seed 9001 --n-cond 2048 --n-target 2048
 --cad-features --whole-slants``).  Each checkpoint generates one-step clouds from the training's anchors (each
 target point's preimage, :func:`polycubenet.evaluate.slant_moves`), so every output point has a known target:
 ``moved`` 1.00 puts a slanted face onto its plane, 0.75 leaves a ramp a quarter as steep as the part's, which the
-extraction reads as a staircase.  Default checkpoints: the shipped file and the continue file.
+extraction reads as a staircase.  Default checkpoints: the shipped file and the continue file.  ``--steps``
+reads each checkpoint at each of these DDIM step counts (default 1, the policy's first draw; a row per pair).
 
 With ``--curve OUT.jsonl`` it reads instead every committed version of the continue file at least ``--min-gap``
 CPU-hours apart (as ``benchmarks/continue_curve.py`` does) and appends one line per version not yet in OUT:
@@ -38,6 +39,7 @@ def main(argv=None) -> int:
     ap.add_argument("--count", type=int, default=256)
     ap.add_argument("--checkpoints", nargs="+", default=DEFAULTS)
     ap.add_argument("--names", nargs="+", help="one short name per checkpoint (default: file stems)")
+    ap.add_argument("--steps", type=int, nargs="+", default=[1], help="DDIM step counts, each read (default 1)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", help="write every checkpoint's summary and rows here")
     ap.add_argument("--curve", help="append a line per committed version of the continue file to this .jsonl")
@@ -48,26 +50,30 @@ def main(argv=None) -> int:
     names = args.names or [Path(c).stem for c in args.checkpoints]
     if len(names) != len(args.checkpoints):
         ap.error("--names needs one name per checkpoint")
+    if len(args.steps) > 1:  # one arm per (checkpoint, steps)
+        names = [f"{n} @{s} steps" for n in names for s in args.steps]
+    arms = [(ck, s) for ck in args.checkpoints for s in args.steps]
     torch.set_num_threads(args.threads)
     results = {}
-    print(f"{'checkpoint':<28} {'CPU-h':>6} {'feature':<12} {'pairs':>5} {'moved':>6} {'short':>6} "
+    print(f"{'checkpoint':<34} {'CPU-h':>6} {'feature':<12} {'pairs':>5} {'moved':>6} {'short':>6} "
           f"{'err slanted':>11} {'err flat':>8}")
-    for name, ck in zip(names, args.checkpoints):
-        r = slant_moves(ck, args.data, args.count, progress=False)
+    for name, (ck, steps) in zip(names, arms):
+        r = slant_moves(ck, args.data, args.count, progress=False, steps=steps)
         results[name] = r
         for cls, v in [*r["by_feature"].items(), ("all", r["all"])]:
             if v["moved_median"] is None:
                 continue
-            print(f"{name:<28} {r['cpu_hours'] or 0:>6.2f} {cls:<12} {v['pairs_with_slanted_points']:>5} "
+            print(f"{name:<34} {r['cpu_hours'] or 0:>6.2f} {cls:<12} {v['pairs_with_slanted_points']:>5} "
                   f"{v['moved_median']:>6.2f} {v['short_rate']:>6.0%} {v['err_slanted_median']:>11.4f} "
                   f"{v['err_flat_median']:>8.4f}", flush=True)
     print(f"\nslanted ends, moved by the point's displacement as a share of the face's largest (0: by the pivot)")
-    print(f"{'checkpoint':<28}" + "".join(f"{b:>9}" for b in SHARE_BINS))
+    print(f"{'checkpoint':<34}" + "".join(f"{b:>9}" for b in SHARE_BINS))
     for name, r in results.items():
         v = r["by_feature"].get("slanted end", {}).get("moved_by_share") or {}
-        print(f"{name:<28}" + "".join(f"{v[b]:>9.2f}" if v.get(b) is not None else f"{'-':>9}" for b in SHARE_BINS))
+        print(f"{name:<34}" + "".join(f"{v[b]:>9.2f}" if v.get(b) is not None else f"{'-':>9}" for b in SHARE_BINS))
     if args.json:
-        write_json(args.json, {"data": args.data, "count": args.count, "checkpoints": dict(zip(names, args.checkpoints)),
+        write_json(args.json, {"data": args.data, "count": args.count, "checkpoints": dict(zip(names, [c for c, _ in arms])),
+                               "steps": dict(zip(names, [s for _, s in arms])),
                                "results": results})
     return 0
 

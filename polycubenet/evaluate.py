@@ -340,8 +340,8 @@ def point_moves(anchors: np.ndarray, normals: np.ndarray, cloud: np.ndarray, tar
 
 
 def slant_moves(checkpoint, data: str | Path, count: int = 256, *, seed: int = 0, batch: int = 8,
-                device: str | None = None, generator=None, progress: bool = True) -> dict:
-    """:func:`point_moves` of ``checkpoint``'s one-step clouds on the first ``count`` held-out pairs, summarised
+                device: str | None = None, generator=None, progress: bool = True, steps: int = 1) -> dict:
+    """:func:`point_moves` of ``checkpoint``'s ``steps``-step clouds (one by default: the policy's first draw) on the first ``count`` held-out pairs, summarised
     per machined feature class (:func:`polycubenet.synth.shards.feature_class`).
 
     Unlike :func:`evaluate` the anchors are the training's: each target point's preimage on the part with the
@@ -367,7 +367,7 @@ def slant_moves(checkpoint, data: str | Path, count: int = 256, *, seed: int = 0
             conds.append(cp)
             anchors.append(np.hstack([pre, np.asarray(s["cond_normals"][k], np.float32)[j]]))
             truths.append((np.asarray(s["target_points"][k], float), np.asarray(s["target_normals"][k], float)))
-        clouds = gen(conds, [len(a) for a in anchors], model=loaded, steps=1, seed=seed + b, device=device,
+        clouds = gen(conds, [len(a) for a in anchors], model=loaded, steps=steps, seed=seed + b, device=device,
                      anchors=anchors)
         for (s, k), a, (tp, tn), cloud in zip(chunk, anchors, truths, clouds):
             rows.append({"seed": int(s["seeds"][k]), "feature": s.feature(k),
@@ -391,7 +391,7 @@ def slant_moves(checkpoint, data: str | Path, count: int = 256, *, seed: int = 0
     classes = [c for c in FEATURE_CLASSES if any(r["feature"] == c for r in rows)]
     return {"checkpoint": str(loaded.path) if loaded is not None and loaded.path else None,
             "cpu_hours": loaded.meta.get("cpu_hours") if loaded is not None else None,
-            "data": str(data), "pairs": len(rows), "all": summary(rows),
+            "data": str(data), "steps": steps, "pairs": len(rows), "all": summary(rows),
             "by_feature": {c: summary([r for r in rows if r["feature"] == c]) for c in classes}, "rows": rows}
 
 

@@ -138,6 +138,17 @@ def test_slant_moves_reads_the_share_of_the_way_a_generator_takes_slanted_faces(
     assert got[0.5]["all"]["short_rate"] == 1.0 and got[1.0]["all"]["short_rate"] == 0.0
     assert got[0.0]["all"]["err_slanted_median"] > 0.01  # left where it was: at least MIN_MOVE from the plane
 
+    # the step count reaches the generator (a multi-step draw is read as the policy would run it)
+    seen = []
+
+    def by_steps(conds, n, *, steps, **kw):
+        seen.append(steps)
+        return toward(1.0 / steps)(conds, n, **kw)
+
+    r8 = slant_moves(None, data, 6, generator=by_steps, progress=False, steps=8)
+    assert set(seen) == {8} and r8["steps"] == 8
+    assert r8["all"]["moved_median"] == pytest.approx(1.0 / 8, abs=1e-6)
+
 
 def test_point_moves_bins_the_slanted_points_by_their_share_of_the_largest_displacement():
     """A ramp left as it was at its pivot end and moved fully at its far end reads 0 in the first bin and 1 in the
