@@ -9,7 +9,8 @@ FEATURES: held-out pairs with the training mix's machined features, from a seed 
 target point's preimage, :func:`polycubenet.evaluate.slant_moves`), so every output point has a known target:
 ``moved`` 1.00 puts a slanted face onto its plane, 0.75 leaves a ramp a quarter as steep as the part's, which the
 extraction reads as a staircase.  Default checkpoints: the shipped file and the continue file.  ``--steps``
-reads each checkpoint at each of these DDIM step counts (default 1, the policy's first draw; a row per pair).
+reads each checkpoint at each of these DDIM step counts (default 1, the policy's first draw; one
+arm per checkpoint and step count).
 
 With ``--curve OUT.jsonl`` it reads instead every committed version of the continue file at least ``--min-gap``
 CPU-hours apart (as ``benchmarks/continue_curve.py`` does) and appends one line per version not yet in OUT:
@@ -73,7 +74,6 @@ def main(argv=None) -> int:
         print(f"{name:<34}" + "".join(f"{v[b]:>9.2f}" if v.get(b) is not None else f"{'-':>9}" for b in SHARE_BINS))
     if args.json:
         write_json(args.json, {"data": args.data, "count": args.count, "checkpoints": dict(zip(names, [c for c, _ in arms])),
-                               "steps": dict(zip(names, [s for _, s in arms])),
                                "results": results})
     return 0
 

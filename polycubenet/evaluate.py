@@ -341,8 +341,8 @@ def point_moves(anchors: np.ndarray, normals: np.ndarray, cloud: np.ndarray, tar
 
 def slant_moves(checkpoint, data: str | Path, count: int = 256, *, seed: int = 0, batch: int = 8,
                 device: str | None = None, generator=None, progress: bool = True, steps: int = 1) -> dict:
-    """:func:`point_moves` of ``checkpoint``'s ``steps``-step clouds (one by default: the policy's first draw) on the first ``count`` held-out pairs, summarised
-    per machined feature class (:func:`polycubenet.synth.shards.feature_class`).
+    """:func:`point_moves` of ``checkpoint``'s ``steps``-step clouds (one by default: the policy's first draw) on
+    the first ``count`` held-out pairs, summarised per machined feature class (:func:`polycubenet.synth.shards.feature_class`).
 
     Unlike :func:`evaluate` the anchors are the training's: each target point's preimage on the part with the
     normal of the nearest condition point, so every output point has a known target and the error of a slanted
