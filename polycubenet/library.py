@@ -62,7 +62,9 @@ STAGE_VERSIONS = {
     "polycube": "1",
     "extract": "4",  # 2: carries the classical exact map; 3: the voxel solid taken as built; 4: no plane refit
     "register": "2",  # 2: the classical exact map replaces CPD
-    "pullback": "5",  # 2: classical pullback as in pipeline.mesh_surface; 3: sj_terms by operators; 4: realise.py; 5: no-pillow retry
+    # 2: classical pullback as in pipeline.mesh_surface; 3: sj_terms by operators; 4: realise.py;
+    # 5: no-pillow retry; 6: uncovered spots mended (pullback.mend_spots)
+    "pullback": "6",
     "export": "1",
 }
 #: stage names in pipeline order (what ``stage reached`` in the manifest refers to)

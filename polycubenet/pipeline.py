@@ -20,7 +20,10 @@ A generated (learned or oracle) polycube is pulled back through the registration
 mesh would not end the chain (not valid, off the part, under the quality bar), the same structure is
 also realised exactly on the part (:mod:`polycubenet.realise`: labels transferred through the
 registration, the classical deformation, the same cells or nothing) and the better mesh kept
-(:func:`pull_back_learned`; ``meta["map"]`` and the manifest's ``map`` say which).
+(:func:`pull_back_learned`; ``meta["map"]`` and the manifest's ``map`` say which).  A valid mesh of any
+source that is off the part only at a few spots gets them mended (:func:`polycubenet.pullback.mend_spots`,
+``meta["spots"]``); a learned polycube's map mesh only after its realisation was tried, which is better where
+it applies.
 
 **Hybrid policy** (``PipelineConfig.polycube``): the sources of :func:`source_chain` are
 tried in order.
@@ -67,7 +70,7 @@ from .hexmesh import partition
 from .polycube import polycube_surface
 from .policy import MODES as POLYCUBE_MODES
 from .policy import Attempt, distance_to_part, ends_chain, error_reason, extraction_config, invalid_mesh_reason, mesh_rank, refinement, run_chain, source_config, source_label, source_names  # noqa: F401
-from .pullback import PullbackConfig, pull_back, worth_retry
+from .pullback import PullbackConfig, mend_spots, pull_back, worth_retry
 from .quality import QualityReport, quality_report
 from .realise import RealiseConfig, learned_map
 from .realise import variants as realise_variants
@@ -473,6 +476,7 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
         first = next(i for i, n in enumerate(steps) if n != "exact")
         steps[first] = "registration"
     best, used, why_not, cache = None, poly, [], {}
+    unmended = dataclasses.replace(config.pullback, capture_spots=False)
 
     def keep(m: HexMesh, polycube: Polycube, tie_wins: bool = False) -> bool:
         """Keep ``m`` when it ranks above the best so far; True when it ends the chain."""
@@ -491,7 +495,8 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
                 continue
             if step == "refined" and not near_miss(best):
                 continue
-            m = pull_back(mesh_pc, maps[step], Vc, F, config.pullback, diagonal)
+            # its spots are mended only when no later step ends the chain (below): a realised mesh is better
+            m = pull_back(mesh_pc, maps[step], Vc, F, unmended, diagonal)
             m.meta["map"] = step
             if keep(m, poly):
                 return m, poly
@@ -510,6 +515,8 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
             # a tie with a map's mesh: the exact map
             if keep(realised, exact.polycube, tie_wins=best is not None and "realised" not in best.meta):
                 return realised, exact.polycube
+    if config.pullback.capture_spots and "realised" not in best.meta:  # a realised mesh was mended already
+        best = mend_spots(best, Vc, F, config.pullback, diagonal)
     if "realised" not in best.meta and "exact" in steps:
         why = "; ".join(why_not) if why_not else "its mesh ranks above the realised ones"
         best.meta["map"] = f"{best.meta['map']} ({why})"

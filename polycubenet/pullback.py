@@ -53,6 +53,14 @@ Steps (each timed and measured in ``meta``):
    nodes: all nodes move at once, and moves that lower the minimum (or the sum) of the SJ of
    their incident hexes are undone, so the mesh minimum never drops.
 
+6. **Mending uncovered spots** (:func:`mend_spots`, ``capture_spots``).  A valid mesh still farther
+   from the part than the Hausdorff bar is mostly so at a few spots: a short sharp feature no polycube
+   edge maps to (a knife edge where a slanted cut crosses a hole or notch, a corner of a pocket).  The
+   coverage fit moves nodes by the mean residual, which leaves such a spot cut; here the nearest surface
+   nodes move onto the farthest uncovered samples of the part, one node per spot and round, each move
+   undone if a hex falls below ``min(capture_sj, its SJ before)`` (:func:`guarded_spot_capture`), the
+   interior is smoothed again, and the result is kept only when it is within the bar.
+
 A result with an inverted or degenerate hex is still returned, with ``meta["valid"] = False``
 and a sentence in ``meta["warnings"]``; it is never returned silently.
 """
@@ -217,6 +225,16 @@ class PullbackConfig:
     snap_corners : bool
         After the final fit, bring a surface node onto each corner of the part (three or more sharp
         edges) that no node is near (:func:`guarded_corner_snap`, under the same quality guard).
+    capture_spots : bool
+        A valid mesh farther from the part than the Hausdorff bar (:data:`polycubenet.tol.HAUSDORFF_REL_MAX`,
+        relative to the part's own diagonal) gets its surface nodes moved onto the spots of the part it leaves
+        uncovered, then the interior smoothed again, and is kept so when that brings it within the bar
+        (:func:`mend_spots`).  Meshes within the bar are left as they are.
+    capture_target : float
+        Spots farther than this (relative to the diagonal) are captured once the capture runs.
+    capture_sj : float
+        The capture's quality guard: no hex goes below ``min(capture_sj, its SJ before)``.  Lower than
+        ``final_coverage_sj``: a mesh off the part fails, one at 0.22 is above the quality bar (0.2).
     """
 
     pillow: bool = True
@@ -263,6 +281,9 @@ class PullbackConfig:
     #: did in the 4 variants measured on those, which cost 36-62 s before the voxel polycube meshed them
     retry_min_sj: float = -0.05
     snap_corners: bool = True
+    capture_spots: bool = True
+    capture_target: float = 0.8 * tol.HAUSDORFF_REL_MAX
+    capture_sj: float = 0.22
 
     def __post_init__(self):
         if self.interior not in ("correction", "harmonic"):
@@ -1216,6 +1237,101 @@ def guarded_corner_snap(
     return X, info
 
 
+def guarded_spot_capture(
+    surf: PartSurface,
+    X: np.ndarray,
+    hexes: np.ndarray,
+    nodes: np.ndarray,
+    hloc: np.ndarray,
+    sj_bar: float,
+    trigger: float,
+    target: float,
+    samples: int = 100_000,
+    rounds: int = 8,
+    radius: float = 2.0,
+    fractions: tuple = (1.0, 0.75, 0.5, 0.25),
+    seed: int = 0,
+) -> tuple[np.ndarray, dict]:
+    """Bring the boundary onto the spots of the part it leaves uncovered, when one is farther than ``trigger``.
+
+    The coverage fit moves nodes by the *mean* of the residuals around them, so a short sharp feature that
+    no polycube edge maps to (a knife edge where a slanted cut crosses a hole, the corner of a notch) stays
+    cut by the quads: a few surface points, but the Hausdorff distance is their maximum.  Here, only
+    when a sample of the part (its vertices plus ``samples`` area-uniform points) lies farther than
+    ``trigger`` from the boundary quads, up to ``rounds`` rounds each take the samples farther than
+    ``target``, worst first, and move one of the three nearest surface nodes (within ``radius`` x its local
+    edge length, each node once a round) onto the sample: the largest of ``fractions`` of the way that
+    passes the guard of :func:`guarded_corner_snap` (no hex around it below ``min(sj_bar, its SJ before)``,
+    its quads no farther from the part than before or than half the Hausdorff bar).  A valid mesh stays
+    valid.  Lengths are in the units of ``X`` (the pull-back's frame: diagonal 1).
+
+    Returns ``X`` and ``{"spot_captures": moves kept, "spot_captures_refused": samples left,
+    "spot_gap_before": the farthest sample's distance before, "spot_gap_after": after}``.
+    """
+    from .quality import _sample_triangles
+
+    quads = boundary_quads(hexes)
+    tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    S = _sample_triangles(surf.V, surf.F, int(samples), np.random.default_rng(seed))
+    gap = _closest(_scene(X, tris), S)[1]
+    info = {"spot_captures": 0, "spot_captures_refused": 0, "spot_gap_before": float(gap.max()),
+            "spot_gap_after": float(gap.max())}
+    if not gap.max() > trigger or not len(nodes):
+        return X, info
+    X = X.copy()
+    P = len(X)
+    inc = sp.csc_matrix(_hex_incidence(hexes, P)[0])
+    node_quads = sp.csr_matrix((np.ones(quads.size, dtype=bool), (quads.ravel(), np.repeat(np.arange(len(quads)), 4))),
+                               shape=(P, len(quads)))
+    h = np.zeros(P)
+    h[nodes] = hloc
+
+    def quad_gap(Y, qrows):
+        q = Y[quads[qrows]]
+        pts = np.concatenate([q.mean(axis=1), 0.5 * (q + np.roll(q, -1, axis=1)).reshape(-1, 3)])
+        return float(surf.closest(pts)[1].max())
+
+    for _ in range(int(rounds)):
+        far = np.flatnonzero(gap > target)
+        if not len(far):
+            break
+        k = min(3, len(nodes))
+        dist, idx = cKDTree(X[nodes]).query(S[far], k=k)
+        dist, idx = dist.reshape(len(far), k), idx.reshape(len(far), k)
+        used: set = set()
+        moved = refused = 0
+        for r in np.argsort(-gap[far]):
+            s = S[far[r]]
+            for dn, j in zip(dist[r], idx[r]):
+                n = int(nodes[j])
+                if n in used or dn > radius * h[n]:
+                    continue
+                rows, qrows = inc[:, n].indices, node_quads[n].indices
+                before = _hex_sj(hexes, X, rows)
+                gap_bar = max(quad_gap(X, qrows), 0.5 * tol.HAUSDORFF_REL_MAX)
+                start = X[n].copy()
+                for frac in fractions:
+                    X[n] = start + frac * (s - start)
+                    if ((_hex_sj(hexes, X, rows) >= np.minimum(before, sj_bar) - 1e-9).all()
+                            and quad_gap(X, qrows) <= gap_bar):
+                        break
+                    X[n] = start
+                else:
+                    continue
+                used.add(n)
+                moved += 1
+                break
+            else:
+                refused += 1
+        info["spot_captures"] += moved
+        info["spot_captures_refused"] = refused
+        gap = _closest(_scene(X, tris), S)[1]
+        if not moved:
+            break
+    info["spot_gap_after"] = float(gap.max())
+    return X, info
+
+
 # --------------------------------------------------------------------------- optimisation
 
 
@@ -1647,13 +1763,60 @@ def pull_back(
     """
     res = _pull_back_once(mesh_pc, to_part, V, F, config)
     if res.meta["valid"] or not config.coverage_iterations or not worth_retry(res.meta, config):
-        return _with_hausdorff(res, V, F, diagonal)
-    again = _pull_back_once(mesh_pc, to_part, V, F, dataclasses.replace(config, coverage_iterations=0))
-    total = res.meta["timings"]["total"] + again.meta["timings"]["total"]
-    out = again if again.meta["valid"] else res
-    out.meta["coverage_retry"] = "kept" if out is again else "discarded"
-    out.meta["timings"]["total"] = total
-    return _with_hausdorff(out, V, F, diagonal)
+        out = _with_hausdorff(res, V, F, diagonal)
+    else:
+        again = _pull_back_once(mesh_pc, to_part, V, F, dataclasses.replace(config, coverage_iterations=0))
+        total = res.meta["timings"]["total"] + again.meta["timings"]["total"]
+        out = again if again.meta["valid"] else res
+        out.meta["coverage_retry"] = "kept" if out is again else "discarded"
+        out.meta["timings"]["total"] = total
+        out = _with_hausdorff(out, V, F, diagonal)
+    return mend_spots(out, V, F, config, diagonal) if config.capture_spots else out
+
+
+def mend_spots(mesh: HexMesh, V: np.ndarray, F: np.ndarray, config: PullbackConfig = PullbackConfig(),
+               diagonal: float | None = None) -> HexMesh:
+    """A valid pulled-back mesh off the part (``meta["hausdorff"]`` above :data:`polycubenet.tol.HAUSDORFF_REL_MAX`)
+    with its uncovered spots captured (:func:`guarded_spot_capture`, at ``config.capture_target`` and under
+    ``config.capture_sj``), the interior smoothed again (:func:`guarded_smooth`), when that brings it within the
+    bar; else ``mesh`` as it is.  Any other mesh is returned as it is.  ``meta["spots"]`` says what was tried
+    (moves kept, samples left, farthest sample before and after), also when the mend is not kept.
+
+    ``V``, ``F``, ``diagonal``: as for :func:`pull_back` (``mesh`` in the units of ``V``)."""
+    d = mesh.meta.get("hausdorff")
+    if not mesh.meta.get("valid") or d is None or not d > tol.HAUSDORFF_REL_MAX:
+        return mesh
+    t0 = time.perf_counter()
+    V = np.asarray(V, dtype=np.float64)
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    centre, diag = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
+    X = (np.asarray(mesh.points, dtype=np.float64) - centre) / diag
+    hexes = mesh.hexes
+    surf = PartSurface((V - centre) / diag, F, config.feature_angle_deg)
+    nodes = np.unique(boundary_quads(hexes))
+    hloc = _mean_edge_length(X, hex_edges(hexes), len(X))[nodes]
+    target = config.capture_target * (diagonal or diag) / diag  # relative to the part's own diagonal
+    X, info = guarded_spot_capture(surf, X, hexes, nodes, hloc, config.capture_sj, trigger=target, target=target)
+    mesh.meta["spots"] = {**info, "kept": False}
+    if not info["spot_captures"]:
+        return mesh
+    if config.smoothing_sweeps:
+        bmask = boundary_vertex_mask(hexes, len(X))
+        X, _ = guarded_smooth(X, hexes, ~bmask, sweeps=config.smoothing_sweeps, step=config.smoothing_step)
+    st = _stats(X, hexes)
+    if st["inverted"] or st["degenerate"] or not st["sj_min"] > 0:  # pragma: no cover - the guard keeps it valid
+        return mesh
+    meta = {**mesh.meta, "sj_min": st["sj_min"], "sj_avg": st["sj_avg"],
+            "deviation": float(boundary_deviation(X, hexes, surf)), "timings": dict(mesh.meta.get("timings", {}))}
+    meta["timings"]["mend_spots"] = time.perf_counter() - t0
+    meta["stages"] = {**mesh.meta.get("stages", {}), "spots_mended": st}
+    mended = _with_hausdorff(HexMesh(points=X * diag + centre, hexes=hexes, boundary=mesh.boundary, meta=meta),
+                             V, F, diagonal)
+    if not mended.meta["hausdorff"] <= tol.HAUSDORFF_REL_MAX:
+        mesh.meta["spots"]["after"] = mended.meta["hausdorff"]
+        return mesh
+    mended.meta["spots"] = {**info, "kept": True, "hausdorff_before": d, "sj_min_before": mesh.meta.get("sj_min")}
+    return mended
 
 
 def _with_hausdorff(mesh: HexMesh, V: np.ndarray, F: np.ndarray, diagonal: float | None = None) -> HexMesh:
@@ -2007,6 +2170,8 @@ __all__ = [
     "fit_coverage",
     "guarded_coverage",
     "pull_back",
+    "mend_spots",
+    "guarded_spot_capture",
     "worth_retry",
 ]
 

@@ -17,6 +17,8 @@ from polycubenet.pullback import (
     chart_labels,
     classify_boundary,
     guarded_corner_snap,
+    guarded_spot_capture,
+    mend_spots,
     guarded_smooth,
     harmonic_extension,
     hex_edges,
@@ -426,7 +428,7 @@ def test_a_far_from_valid_result_is_not_recomputed_without_the_coverage_fit(monk
 
     calls = []
 
-    def fake_once(mesh_pc, to_part, V, F, config):
+    def fake_once(mesh_pc, to_part, V, F, config, diagonal=None):
         calls.append(config.coverage_iterations)
         return HexMesh(mesh_pc.points, mesh_pc.hexes, mesh_pc.boundary,
                        meta={"valid": False, "sj_min": first_min, "timings": {"total": 1.0}})
@@ -471,3 +473,55 @@ def test_a_cut_corner_gets_a_node_back_under_the_quality_guard():
     out, info = guarded_corner_snap(shifted, X, m.hexes, nodes, hloc, sj_bar=0.3)
     assert np.allclose(out[corner], X[corner] + 0.75 * (target - X[corner]))
     assert scaled_jacobian(out, m.hexes).min() >= 0.3 - 1e-9
+
+
+def test_an_uncovered_spot_on_an_edge_is_captured_only_when_the_mesh_is_off_the_part():
+    """A box mesh with one node in the middle of an edge pulled inside the part (its quads cut the part's
+    edge there, by more than the Hausdorff bar): the capture brings the boundary back onto the edge
+    within the target, no hex dropping below min(bar, its SJ before); a mesh within the bar is left as is."""
+    m = structured_box(4)
+    pc = _polycube(np.ones((1, 1, 1), bool), [0, 4], [0, 4], [0, 4])
+    V, F = polycube_surface(pc.xs, pc.ys, pc.zs, pc.occupancy, h=0.5)
+    V = V / np.linalg.norm([4, 4, 4])
+    X = m.points / np.linalg.norm([4, 4, 4])
+    surf = PartSurface(V, F)
+    nodes = np.flatnonzero(m.boundary)
+    cell = 0.25 / np.sqrt(3)
+    hloc = np.full(len(nodes), cell)
+    args = dict(sj_bar=0.3, trigger=0.01, target=0.008, samples=20000)
+    out, info = guarded_spot_capture(surf, X, m.hexes, nodes, hloc, **args)
+    assert info["spot_captures"] == 0 and np.array_equal(out, X) and info["spot_gap_before"] < 0.01
+    edge = int(np.argmin(np.linalg.norm(X - [2 * cell, 0, 0], axis=1)))  # mid-edge node at (2, 0, 0) cells
+    cut = X.copy()
+    cut[edge] += [0.0, 0.4 * cell, 0.4 * cell]  # into the part, off its edge
+    before = scaled_jacobian(cut, m.hexes)
+    out, info = guarded_spot_capture(surf, cut, m.hexes, nodes, hloc, **args)
+    assert info["spot_gap_before"] > 0.01
+    assert info["spot_captures"] >= 1 and info["spot_gap_after"] <= 0.008
+    assert (scaled_jacobian(out, m.hexes) >= np.minimum(before, 0.3) - 1e-9).all()
+    assert np.linalg.norm(out[edge] - X[edge]) < 0.3 * cell  # the node went back towards the edge
+    # no node within reach of the spots (radius 0.1 cell): nothing moves, the spots are counted
+    out, info = guarded_spot_capture(surf, cut, m.hexes, nodes, hloc, radius=0.1, **args)
+    assert info["spot_captures"] == 0 and np.array_equal(out, cut) and info["spot_captures_refused"] > 0
+
+
+def test_a_mesh_off_the_part_at_one_spot_is_mended_and_one_on_it_is_left():
+    """mend_spots on a finished mesh (the part's units): the box mesh with a mid-edge node pulled inside, its
+    Hausdorff distance above the bar, comes back within it and valid; a mesh within the bar, or not valid, is
+    returned as it is."""
+    m = structured_box(4)
+    V, F = polycube_surface(np.array([0.0, 4.0]), np.array([0.0, 4.0]), np.array([0.0, 4.0]),
+                            np.ones((1, 1, 1), bool), h=0.5)
+    pts = m.points.copy()
+    edge = int(np.argmin(np.linalg.norm(pts - [2.0, 0.0, 0.0], axis=1)))
+    pts[edge] += [0.0, 0.4, 0.4]
+    sj = scaled_jacobian(pts, m.hexes)
+    off = HexMesh(pts, m.hexes, m.boundary, meta={"valid": True, "hausdorff": 0.03, "sj_min": float(sj.min()),
+                                                 "timings": {}})
+    out = mend_spots(off, V, F)
+    assert out is not off and out.meta["spots"]["kept"] and out.meta["valid"]
+    assert out.meta["hausdorff"] <= 0.01 and out.meta["spots"]["hausdorff_before"] == 0.03
+    assert scaled_jacobian(out.points, out.hexes).min() >= min(sj.min(), PullbackConfig().capture_sj) - 1e-9
+    for meta in ({"valid": True, "hausdorff": 0.005}, {"valid": False, "hausdorff": 0.03}):
+        same = HexMesh(pts, m.hexes, m.boundary, meta=dict(meta))
+        assert mend_spots(same, V, F) is same and "spots" not in same.meta

@@ -11,6 +11,7 @@ import trimesh
 from polycubenet.data import Polycube
 from polycubenet.errors import PolycubeError
 from polycubenet.polycube import polycube_surface
+from polycubenet.pullback import PullbackConfig
 from polycubenet.realise import match_structure, planar_patches, realise
 from polycubenet.sampling import poisson_disk
 
@@ -149,12 +150,19 @@ def test_a_learned_polycube_whose_registration_misses_the_slant_is_meshed_throug
     V, F, poly, _ = slanted_l
     cfg = PipelineConfig(target_hexes=1500)
     identity = _Map(lambda P: np.asarray(P, float))
-    registration_alone = PipelineConfig(target_hexes=1500, realise=None, learned_maps=("registration",))
+    registration_alone = PipelineConfig(target_hexes=1500, realise=None, learned_maps=("registration",),
+                                        pullback=PullbackConfig(capture_spots=False))
     plain, _ = pull_back_learned(poly, identity, V, F, registration_alone)
     assert plain.meta["map"] == "registration" and not ends_chain(plain.meta, cfg.min_sj)
     mesh, used = pull_back_learned(poly, identity, V, F, cfg)
     assert mesh.meta["map"] == "exact (realised)" and ends_chain(mesh.meta, cfg.min_sj)
     assert distance_to_part(mesh.meta) < 0.25 * distance_to_part(plain.meta)
+    # the registration's mesh with its uncovered spots mended ends the chain too, but only when no later step
+    # does: the realised mesh is closer to the part and better
+    mended, _ = pull_back_learned(poly, identity, V, F,
+                                  dataclasses.replace(registration_alone, pullback=PullbackConfig()))
+    assert mended.meta["spots"]["kept"] and ends_chain(mended.meta, cfg.min_sj)
+    assert distance_to_part(mesh.meta) < distance_to_part(mended.meta) and mesh.meta["sj_min"] > mended.meta["sj_min"]
     assert np.array_equal(used.occupancy, poly.occupancy) and "realised_polycube" in mesh.meta
 
 
@@ -250,7 +258,8 @@ def test_the_learned_steps_run_in_their_order_and_stop_at_the_first_mesh_that_en
     assert mesh.meta["map"] == "exact (realised)" and fitted == []
     refined_first = PipelineConfig(target_hexes=1500, learned_maps=("registration", "refined"))  # exact appended
     alone, _ = pull_back_learned(poly, identity, V, F, dataclasses.replace(refined_first, realise=None,
-                                                                            learned_maps=("registration",)))
+                                                                            learned_maps=("registration",),
+                                                                            pullback=PullbackConfig(capture_spots=False)))
     assert not pipeline.near_miss(alone) and distance_to_part(alone.meta) > 0.02
     mesh, _ = pull_back_learned(poly, identity, V, F, refined_first)
     assert fitted == [] and mesh.meta["map"] == "exact (realised)"
