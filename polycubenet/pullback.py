@@ -1237,6 +1237,20 @@ def guarded_corner_snap(
     return X, info
 
 
+def _guarded_move(X, hexes, inc, group, v, fractions, sj_bar, also) -> bool:
+    """Move nodes ``group`` of ``X`` (in place) by the largest of ``fractions`` of ``v`` that leaves no hex around
+    them below ``min(sj_bar, its SJ before)`` and passes ``also()``; True if one did (else ``X`` is unchanged)."""
+    rows = np.unique(np.concatenate([inc[:, m].indices for m in group]))
+    before = _hex_sj(hexes, X, rows)
+    start = X[group].copy()
+    for frac in fractions:
+        X[group] = start + frac * v
+        if (_hex_sj(hexes, X, rows) >= np.minimum(before, sj_bar) - 1e-9).all() and also():
+            return True
+    X[group] = start
+    return False
+
+
 def guarded_spot_capture(
     surf: PartSurface,
     X: np.ndarray,
@@ -1251,6 +1265,7 @@ def guarded_spot_capture(
     radius: float = 2.0,
     fractions: tuple = (1.0, 0.75, 0.5, 0.25),
     seed: int = 0,
+    follow: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict]:
     """Bring the boundary onto the spots of the part it leaves uncovered, when one is farther than ``trigger``.
 
@@ -1262,8 +1277,10 @@ def guarded_spot_capture(
     ``target``, worst first, and move one of the three nearest surface nodes (within ``radius`` x its local
     edge length, each node once a round) onto the sample: the largest of ``fractions`` of the way that
     passes the guard of :func:`guarded_corner_snap` (no hex around it below ``min(sj_bar, its SJ before)``,
-    its quads no farther from the part than before or than half the Hausdorff bar).  A valid mesh stays
-    valid.  Lengths are in the units of ``X`` (the pull-back's frame: diagonal 1).
+    its quads no farther from the part than before or than half the Hausdorff bar), the node alone first,
+    then, with ``follow`` (``(P,)``, the node that moves with each node, -1: none; e.g. its inner pillow
+    copy), the two together: alone it shears its boundary hex, together they shear the hex behind it.  A valid
+    mesh stays valid.  Lengths are in the units of ``X`` (the pull-back's frame: diagonal 1).
 
     Returns ``X`` and ``{"spot_captures": moves kept, "spot_captures_refused": samples left,
     "spot_gap_before": the farthest sample's distance before, "spot_gap_after": after}``.
@@ -1306,17 +1323,13 @@ def guarded_spot_capture(
                 n = int(nodes[j])
                 if n in used or dn > radius * h[n]:
                     continue
-                rows, qrows = inc[:, n].indices, node_quads[n].indices
-                before = _hex_sj(hexes, X, rows)
+                qrows = node_quads[n].indices
                 gap_bar = max(quad_gap(X, qrows), 0.5 * tol.HAUSDORFF_REL_MAX)
-                start = X[n].copy()
-                for frac in fractions:
-                    X[n] = start + frac * (s - start)
-                    if ((_hex_sj(hexes, X, rows) >= np.minimum(before, sj_bar) - 1e-9).all()
-                            and quad_gap(X, qrows) <= gap_bar):
-                        break
-                    X[n] = start
-                else:
+                def passes(qrows=qrows, gap_bar=gap_bar):
+                    return quad_gap(X, qrows) <= gap_bar
+
+                groups = [[n]] + ([[n, int(follow[n])]] if follow is not None and follow[n] >= 0 else [])
+                if not any(_guarded_move(X, hexes, inc, g, s - X[n], fractions, sj_bar, passes) for g in groups):
                     continue
                 used.add(n)
                 moved += 1
@@ -1794,9 +1807,20 @@ def mend_spots(mesh: HexMesh, V: np.ndarray, F: np.ndarray, config: PullbackConf
     hexes = mesh.hexes
     surf = PartSurface((V - centre) / diag, F, config.feature_angle_deg)
     nodes = np.unique(boundary_quads(hexes))
-    hloc = _mean_edge_length(X, hex_edges(hexes), len(X))[nodes]
+    edges = hex_edges(hexes)
+    hloc = _mean_edge_length(X, edges, len(X))[nodes]
+    # each surface node's one neighbour inside (its inner pillow copy, or the next layer's node), -1 if not one
+    on = np.zeros(len(X), dtype=bool)
+    on[nodes] = True
+    a, b = np.concatenate([edges[:, 0], edges[:, 1]]), np.concatenate([edges[:, 1], edges[:, 0]])
+    inward = on[a] & ~on[b]
+    count = np.bincount(a[inward], minlength=len(X))
+    follow = np.full(len(X), -1, dtype=np.int64)
+    follow[a[inward]] = b[inward]
+    follow[count != 1] = -1
     target = config.capture_target * (diagonal or diag) / diag  # relative to the part's own diagonal
-    X, info = guarded_spot_capture(surf, X, hexes, nodes, hloc, config.capture_sj, trigger=target, target=target)
+    X, info = guarded_spot_capture(surf, X, hexes, nodes, hloc, config.capture_sj, trigger=target, target=target,
+                                   follow=follow)
     mesh.meta["spots"] = {**info, "kept": False}
     if not info["spot_captures"]:
         return mesh
