@@ -208,7 +208,7 @@ def map_name(meta: dict) -> str:
 
 def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int = 0,
                  learned_maps: tuple[str, ...] | None = None, snap_planes: float | str | None = "default",
-                 draws: tuple | None = None, first_anchors: str = "uniform") -> dict:
+                 draws: tuple | None = None, first_anchors: str = "uniform", spot_mend: bool = True) -> dict:
     """Mesh through the learned source only (``--polycube learned``: the first draw at ``steps``,
     then the model's further draws, ``polycubenet.policy.LEARNED_DRAWS``; no classical fallback), as
     ``mesh_part`` does: name -> (valid, faithful and at least the quality bar ``min_sj``, SJ min,
@@ -220,7 +220,8 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
     ``snap_planes``: ``PipelineConfig.snap_planes`` (``"default"``: the pipeline's; None: off).
     ``draws``: the model's further draws (:func:`parse_draws`; None: ``policy.LEARNED_DRAWS``).
     ``first_anchors``: the first draw's anchor spread (``ModelSource(anchors=...)``; the further draws take
-    theirs from the table)."""
+    theirs from the table).  ``spot_mend``: ``PullbackConfig.capture_spots`` (False: meshes off the part are not
+    mended, the code before session 45).  Each row ends with whether the kept mesh's spots were mended."""
     from polycubenet import policy
     from polycubenet.inference import ModelSource
     from polycubenet.pipeline import PipelineConfig, mesh_part
@@ -231,7 +232,7 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
         policy.LEARNED_DRAWS = draws
         try:
             return mesh_learned(paths, checkpoint, steps, draw_seed, learned_maps, snap_planes,
-                                first_anchors=first_anchors)
+                                first_anchors=first_anchors, spot_mend=spot_mend)
         finally:
             policy.LEARNED_DRAWS = saved
 
@@ -241,6 +242,8 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
         cfg = dataclasses.replace(cfg, learned_maps=tuple(learned_maps))
     if snap_planes != "default":
         cfg = dataclasses.replace(cfg, snap_planes=snap_planes)
+    if not spot_mend:
+        cfg = dataclasses.replace(cfg, pullback=dataclasses.replace(cfg.pullback, capture_spots=False))
     for p in paths:
         t0 = time.perf_counter()
         try:
@@ -251,7 +254,8 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
             dist = r.row()["hausdorff"]
             res[p.stem] = (ok, None if q is None else q.sj_min, draw if ok else None,
                            round(time.perf_counter() - t0, 1), None if dist is None else round(float(dist), 4),
-                           r.fallback_reason, map_name(r.mesh.meta))
+                           r.fallback_reason, map_name(r.mesh.meta),
+                           bool((r.mesh.meta.get("spots") or {}).get("kept")))
         except Exception as exc:  # noqa: BLE001 - report the failure in the row
             res[p.stem] = (False, f"{type(exc).__name__}", None, round(time.perf_counter() - t0, 1), None, str(exc), None)
     return res
@@ -293,6 +297,9 @@ def main(argv=None) -> int:
     ap.add_argument("--first-anchors", choices=ANCHOR_SPREADS, default="uniform",
                     help="with --mesh: the first draw's anchor spread only (the further draws take theirs from "
                          "--draws), e.g. --first-anchors even --draws 4/0/n/-,1/1/y/-,1/0/y/-/uniform")
+    ap.add_argument("--no-spot-mend", action="store_true",
+                    help="with --mesh: meshes off the part are not mended (PullbackConfig.capture_spots=False; the "
+                         "code before session 45), for a same-code comparison")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/unseen_parts.json"))
     ap.add_argument("--make-only", metavar="DIR", help="only write the parts as STEP files into DIR and stop (no model): "
                     "a folder for `polycubenet mesh` or benchmarks/bench_auto_cost.py --parts")
@@ -323,9 +330,9 @@ def main(argv=None) -> int:
     if args.snap_planes != "default":
         args.snap_planes = None if args.snap_planes == "off" else float(args.snap_planes)
     meshed = mesh_learned([p for p, _ in made], args.checkpoint, args.steps, args.draw_seed, maps,
-                          args.snap_planes, draws, args.first_anchors) if args.mesh else {}
+                          args.snap_planes, draws, args.first_anchors, not args.no_spot_mend) if args.mesh else {}
     ex_meshed = mesh_learned(examples, args.checkpoint, args.steps, args.draw_seed, maps, args.snap_planes,
-                             draws, args.first_anchors) if args.mesh else {}
+                             draws, args.first_anchors, not args.no_spot_mend) if args.mesh else {}
     ex_rows, _ = part_rows(args.checkpoint, examples, 4096, args.steps)
     print(f"\n{'part':<18} {'genus':>5} {'first draw':<28} {'learned mesh: SJ, Hausdorff':<28} shape")
     for r in rows:
@@ -350,6 +357,7 @@ def main(argv=None) -> int:
               f"draw, {er} realised exactly)")
     write_json(args.json, {"checkpoint": args.checkpoint, "snap_planes": args.snap_planes, "seed": args.seed, "family": args.family, "count": len(rows), "steps": args.steps,
                            "draw_seed": args.draw_seed, "learned_maps": maps, "draws": args.draws, "first_anchors": args.first_anchors,
+                           "spot_mend": not args.no_spot_mend,
                            "accepted": acc, "examples_accepted": ex_acc, "examples": len(ex_rows),
                            "meshed_valid": counts(meshed)[1] if meshed else None,
                            "meshed_first_draw": counts(meshed)[0] if meshed else None,
