@@ -59,12 +59,16 @@ def test_a_learned_polycube_whose_registration_misses_the_slant_is_meshed_throug
 
     V, F, poly, shear = slanted_l
     P, N, A = _generated(poly, shear)
-    cfg = PipelineConfig(target_hexes=1500, realise=None, learned_maps=("registration", "anchors"))
+    from polycubenet.pullback import PullbackConfig
+
+    unmended = PullbackConfig(capture_spots=False)  # the registration's mesh as the map leaves it (no spot mend)
+    cfg = PipelineConfig(target_hexes=1500, realise=None, learned_maps=("registration", "anchors"), pullback=unmended)
     identity = _Map(lambda X: np.asarray(X, float))
     plain, _ = pull_back_learned(poly, identity, V, F, cfg)  # no anchors: the registration alone
     assert plain.meta["map"] == "registration" and not ends_chain(plain.meta, cfg.min_sj)
     assert "anchors" not in PipelineConfig().learned_maps  # an option, not the default
-    registration_alone = PipelineConfig(target_hexes=1500, realise=None, learned_maps=("registration",))
+    registration_alone = PipelineConfig(target_hexes=1500, realise=None, learned_maps=("registration",),
+                                        pullback=unmended)
     by_default, _ = pull_back_learned(poly, identity, V, F, registration_alone, anchored=(P, N, A))
     assert by_default.meta["map"] == "registration"
     mesh, used = pull_back_learned(poly, identity, V, F, cfg, anchored=(P, N, A))
