@@ -1165,6 +1165,20 @@ def guarded_coverage(
     return X, {"guarded_s2h": hist_s, "guarded_h2s": hist_h, "guarded_undone": undone}
 
 
+def _node_quads(quads: np.ndarray, P: int) -> sp.csr_matrix:
+    """The node -> boundary quad incidence (P x Q boolean CSR)."""
+    return sp.csr_matrix((np.ones(quads.size, dtype=bool), (quads.ravel(), np.repeat(np.arange(len(quads)), 4))),
+                         shape=(P, len(quads)))
+
+
+def _quad_gap(surf: PartSurface, Y: np.ndarray, quads: np.ndarray) -> float:
+    """How far boundary quads ``quads`` (``(k, 4)`` node ids) at positions ``Y`` are from the part: the largest
+    distance of their centres and edge midpoints to the surface."""
+    q = Y[quads]  # (k, 4, 3)
+    pts = np.concatenate([q.mean(axis=1), 0.5 * (q + np.roll(q, -1, axis=1)).reshape(-1, 3)])
+    return float(surf.closest(pts)[1].max())
+
+
 def guarded_corner_snap(
     surf: PartSurface,
     X: np.ndarray,
@@ -1203,15 +1217,12 @@ def guarded_corner_snap(
     P = len(X)
     inc = sp.csc_matrix(_hex_incidence(hexes, P)[0])
     quads = boundary_quads(hexes)
-    node_quads = sp.csr_matrix((np.ones(quads.size, dtype=bool), (quads.ravel(), np.repeat(np.arange(len(quads)), 4))),
-                               shape=(P, len(quads)))
+    node_quads = _node_quads(quads, P)
     if follow is not None:
         follow = np.concatenate([follow, np.full(max(0, P - len(follow)), -1, dtype=np.int64)])
 
     def quad_gap(Y, qrows):
-        q = Y[quads[qrows]]  # (k, 4, 3)
-        pts = np.concatenate([q.mean(axis=1), 0.5 * (q + np.roll(q, -1, axis=1)).reshape(-1, 3)])
-        return float(surf.closest(pts)[1].max())
+        return _quad_gap(surf, Y, quads[qrows])
 
     used: set = set()
     for ci in todo[np.argsort(d[todo])]:
@@ -1298,15 +1309,12 @@ def guarded_spot_capture(
     X = X.copy()
     P = len(X)
     inc = sp.csc_matrix(_hex_incidence(hexes, P)[0])
-    node_quads = sp.csr_matrix((np.ones(quads.size, dtype=bool), (quads.ravel(), np.repeat(np.arange(len(quads)), 4))),
-                               shape=(P, len(quads)))
+    node_quads = _node_quads(quads, P)
     h = np.zeros(P)
     h[nodes] = hloc
 
     def quad_gap(Y, qrows):
-        q = Y[quads[qrows]]
-        pts = np.concatenate([q.mean(axis=1), 0.5 * (q + np.roll(q, -1, axis=1)).reshape(-1, 3)])
-        return float(surf.closest(pts)[1].max())
+        return _quad_gap(surf, Y, quads[qrows])
 
     for _ in range(int(rounds)):
         far = np.flatnonzero(gap > target)
