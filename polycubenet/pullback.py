@@ -78,7 +78,7 @@ from scipy.spatial import cKDTree
 
 from . import tol
 from .data import HexMesh
-from .hexmesh import HEX_EDGES, boundary_quads, boundary_vertex_mask
+from .hexmesh import HEX_EDGES, boundary_quads, boundary_vertex_mask, quads_to_triangles
 from .quality import CORNER_FRAMES, scaled_jacobian_and_degenerate  # verdict's corner order
 
 #: polycube patch labels: label ``2 * axis + (sign > 0)``
@@ -1179,6 +1179,20 @@ def _quad_gap(surf: PartSurface, Y: np.ndarray, quads: np.ndarray) -> float:
     return float(surf.closest(pts)[1].max())
 
 
+def _guarded_move(X, hexes, inc, group, v, fractions, sj_bar, also) -> bool:
+    """Move nodes ``group`` of ``X`` (in place) by the largest of ``fractions`` of ``v`` that leaves no hex around
+    them below ``min(sj_bar, its SJ before)`` and passes ``also()``; True if one did (else ``X`` is unchanged)."""
+    rows = np.unique(np.concatenate([inc[:, m].indices for m in group]))
+    before = _hex_sj(hexes, X, rows)
+    start = X[group].copy()
+    for frac in fractions:
+        X[group] = start + frac * v
+        if (_hex_sj(hexes, X, rows) >= np.minimum(before, sj_bar) - 1e-9).all() and also():
+            return True
+    X[group] = start
+    return False
+
+
 def guarded_corner_snap(
     surf: PartSurface,
     X: np.ndarray,
@@ -1231,35 +1245,14 @@ def guarded_corner_snap(
             continue
         used.add(n)
         group = [n] + ([int(follow[n])] if follow is not None and follow[n] >= 0 else [])
-        rows = np.unique(np.concatenate([inc[:, m].indices for m in group]))
         qrows = node_quads[n].indices
-        before = _hex_sj(hexes, X, rows)
         gap_bar = max(quad_gap(X, qrows), 0.5 * tol.HAUSDORFF_REL_MAX)
-        for frac in fractions:
-            v = frac * (C[ci] - X[n])
-            Y = X.copy()
-            Y[group] += v
-            if (_hex_sj(hexes, Y, rows) >= np.minimum(before, sj_bar) - 1e-9).all() and quad_gap(Y, qrows) <= gap_bar:
-                X = Y
-                info["corner_snaps"] += 1
-                break
+        if _guarded_move(X, hexes, inc, group, C[ci] - X[n], fractions, sj_bar,
+                         lambda: quad_gap(X, qrows) <= gap_bar):
+            info["corner_snaps"] += 1
         else:
             info["corner_snaps_refused"] += 1
     return X, info
-
-
-def _guarded_move(X, hexes, inc, group, v, fractions, sj_bar, also) -> bool:
-    """Move nodes ``group`` of ``X`` (in place) by the largest of ``fractions`` of ``v`` that leaves no hex around
-    them below ``min(sj_bar, its SJ before)`` and passes ``also()``; True if one did (else ``X`` is unchanged)."""
-    rows = np.unique(np.concatenate([inc[:, m].indices for m in group]))
-    before = _hex_sj(hexes, X, rows)
-    start = X[group].copy()
-    for frac in fractions:
-        X[group] = start + frac * v
-        if (_hex_sj(hexes, X, rows) >= np.minimum(before, sj_bar) - 1e-9).all() and also():
-            return True
-    X[group] = start
-    return False
 
 
 def guarded_spot_capture(
@@ -1299,7 +1292,7 @@ def guarded_spot_capture(
     from .quality import _sample_triangles
 
     quads = boundary_quads(hexes)
-    tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    tris = quads_to_triangles(quads)
     S = _sample_triangles(surf.V, surf.F, int(samples), np.random.default_rng(seed))
     gap = _closest(_scene(X, tris), S)[1]
     info = {"spot_captures": 0, "spot_captures_refused": 0, "spot_gap_before": float(gap.max()),
