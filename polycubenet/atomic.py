@@ -1,7 +1,8 @@
 """Atomic file writes: write to a temporary file in the target folder, then rename.
 
 A reader never sees a half-written file, and a killed process leaves at most a
-``.tmp-*`` file behind (never the final name).
+``.tmp-*`` file behind (never the final name). :func:`load_npz` is the matching
+reader, safe to call from many threads at once.
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ import contextlib
 import json
 import os
 import tempfile
+import threading
 from pathlib import Path
 from typing import Iterator
 
@@ -47,6 +49,25 @@ def save_npz(path: str | Path, **arrays) -> Path:
         with open(tmp, "wb") as fh:
             np.savez(fh, **arrays)
     return path
+
+
+_NPZ_READ_LOCK = threading.Lock()
+
+
+def load_npz(path: str | Path, keys=None) -> dict[str, np.ndarray]:
+    """Every array of the ``.npz`` file at ``path`` (or only ``keys``), read into memory.
+
+    Reads are serialised across threads. numpy parses each member's header with
+    ``ast.literal_eval``, and CPython 3.11 keeps the AST constructor's recursion depth in
+    state shared by all threads: when a garbage collection inside one parse runs a
+    finalizer and another thread parses meanwhile, one of them fails with ``SystemError: AST
+    constructor recursion depth mismatch`` (python/cpython#106905). The threaded runner
+    loads cached stages from several workers at once, so every cached read goes through
+    here.
+    """
+    with _NPZ_READ_LOCK, np.load(path, allow_pickle=False) as z:
+        names = z.files if keys is None else [k for k in keys if k in z.files]
+        return {k: z[k] for k in names}
 
 
 def write_text(path: str | Path, text: str) -> Path:

@@ -16,7 +16,7 @@ from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 
-from .atomic import save_npz
+from .atomic import load_npz, save_npz
 
 T = TypeVar("T", bound="_NpzRecord")
 
@@ -40,15 +40,13 @@ class _NpzRecord:
 
     @classmethod
     def load(cls: type[T], path: str | Path) -> T:
-        with np.load(path, allow_pickle=False) as z:
-            kwargs: dict[str, Any] = {}
-            for f in dataclasses.fields(cls):
-                if f.name == "meta":
-                    kwargs["meta"] = json.loads(bytes(z[_META_KEY]).decode()) if _META_KEY in z else {}
-                elif f.name in z:
-                    kwargs[f.name] = z[f.name]
-                else:
-                    kwargs[f.name] = None
+        z = load_npz(path)
+        kwargs: dict[str, Any] = {}
+        for f in dataclasses.fields(cls):
+            if f.name == "meta":
+                kwargs["meta"] = json.loads(bytes(z[_META_KEY]).decode()) if _META_KEY in z else {}
+            else:
+                kwargs[f.name] = z.get(f.name)
         return cls(**kwargs)
 
 

@@ -460,10 +460,10 @@ _EXACT_MAP = ("polycube_vertices", "surface_vertices", "surface_faces")
 
 def _exact_map_arrays(path) -> dict:
     """The exact polycube -> part map a classical cloud file carries (empty for other clouds)."""
-    with np.load(path, allow_pickle=False) as z:
-        if all(k in z.files for k in _EXACT_MAP):
-            return {k: z[k] for k in _EXACT_MAP}
-    return {}
+    from .atomic import load_npz
+
+    arrays = load_npz(path, _EXACT_MAP)
+    return arrays if len(arrays) == len(_EXACT_MAP) else {}
 
 
 def _surface_map(arrays: dict):
@@ -576,10 +576,11 @@ def _save_arrays(dest, meta: dict, **arrays) -> Path:
 
 
 def _load_arrays(path) -> tuple[dict, dict]:
-    with np.load(path, allow_pickle=False) as z:
-        arrays = {k: z[k] for k in z.files if k != "__meta__"}
-        meta = json.loads(bytes(z["__meta__"]).decode()) if "__meta__" in z.files else {}
-    return arrays, meta
+    from .atomic import load_npz
+
+    arrays = load_npz(path)
+    meta = arrays.pop("__meta__", None)
+    return arrays, (json.loads(bytes(meta).decode()) if meta is not None else {})
 
 
 # --------------------------------------------------------------------------- synthetic libraries

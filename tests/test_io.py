@@ -161,6 +161,53 @@ def test_part_meta_survives_npz_round_trip(tmp_path, shapes):
     np.testing.assert_array_equal(back.faces, part.faces)
 
 
+class _Finalized:
+    """A reference cycle whose finalizer runs Python code when the garbage collector frees it."""
+
+    def __del__(self):
+        sum(range(100))
+
+
+def test_cached_arrays_read_from_many_threads_at_once_never_fail(tmp_path):
+    """numpy parses .npz headers with ast; on CPython 3.11 a collection that runs a finalizer
+    mid-parse while another thread parses raised SystemError in CI (threaded runner)."""
+    import gc
+    import sys
+
+    from polycubenet.atomic import load_npz, save_npz
+
+    arrays = {f"a{i}": np.arange(3 * (i + 1), dtype=float).reshape(3, -1) for i in range(80)}
+    path = save_npz(tmp_path / "stage.npz", **arrays)
+    errors_seen, wrong = [], []
+
+    def reader():
+        for _ in range(200):
+            try:
+                got = load_npz(path)
+                if sorted(got) != sorted(arrays) or not np.array_equal(got["a7"], arrays["a7"]):
+                    wrong.append(sorted(got))
+            except SystemError as exc:
+                errors_seen.append(str(exc))
+            for _ in range(20):
+                a, b = _Finalized(), _Finalized()
+                a.other, b.other = b, a
+
+    interval, thresholds = sys.getswitchinterval(), gc.get_threshold()
+    sys.setswitchinterval(1e-6)
+    gc.set_threshold(50, 2, 2)
+    try:
+        threads = [threading.Thread(target=reader) for _ in range(8)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    finally:
+        sys.setswitchinterval(interval)
+        gc.set_threshold(*thresholds)
+    assert not errors_seen and not wrong, (errors_seen[:3], wrong[:3])
+    assert load_npz(path, ["a3", "missing"]).keys() == {"a3"}
+
+
 # ---------------------------------------------------------------------------------------------
 # good inputs: CAD (STEP / IGES through gmsh + OpenCASCADE)
 # ---------------------------------------------------------------------------------------------

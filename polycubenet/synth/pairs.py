@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import save_npz
+from ..atomic import load_npz, save_npz
 from ..data import Polycube, SurfaceSample
 from ..frame import Transform, canonicalize, face_normals_areas
 from ..sampling import interpolate, poisson_disk, uniform_sample
@@ -158,8 +158,7 @@ class SynthPair:
 
     @classmethod
     def load(cls, path: str | Path) -> "SynthPair":
-        with np.load(path, allow_pickle=False) as z:
-            a = {k: z[k] for k in z.files}
+        a = load_npz(path)
         meta = json.loads(bytes(a.pop("__meta__")).decode())
         samples = {
             name: SurfaceSample(a[f"{name}_points"], a[f"{name}_normals"], a[f"{name}_face_ids"], a[f"{name}_barycentrics"])

@@ -43,7 +43,7 @@ from typing import Iterator
 
 import numpy as np
 
-from ..atomic import save_npz, write_json
+from ..atomic import load_npz, save_npz, write_json
 from ..data import Polycube
 from .pairs import EDGE_LENGTH, SynthPair, make_pair
 
@@ -186,8 +186,7 @@ class Shard:
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
-        with np.load(self.path, allow_pickle=False) as z:
-            self.arrays = {k: z[k] for k in z.files}
+        self.arrays = load_npz(self.path)
         self.meta = json.loads(bytes(self.arrays.pop("__meta__")).decode())
         if self.meta.get("format") != FORMAT:
             raise ValueError(f"{self.path}: shard format {self.meta.get('format')} != {FORMAT}")
@@ -415,8 +414,7 @@ def _shard_ok(path: Path, spec: dict) -> bool:
     if not path.exists():
         return False
     try:
-        with np.load(path, allow_pickle=False) as z:
-            index = z["index"]
+        index = load_npz(path, ["index"])["index"]
         return len(index) == spec["count"] and int(index[0]) == spec["first"]
     except Exception:  # a damaged file is regenerated
         return False
