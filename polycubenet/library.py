@@ -63,8 +63,8 @@ STAGE_VERSIONS = {
     "extract": "4",  # 2: carries the classical exact map; 3: the voxel solid taken as built; 4: no plane refit
     "register": "2",  # 2: the classical exact map replaces CPD
     # 2: classical pullback as in pipeline.mesh_surface; 3: sj_terms by operators; 4: realise.py;
-    # 5: no-pillow retry; 6: uncovered spots mended (pullback.mend_spots)
-    "pullback": "6",
+    # 5: no-pillow retry; 6: uncovered spots mended (pullback.mend_spots); 7: no mend past capture_max (4 %)
+    "pullback": "7",
     "export": "1",
 }
 #: stage names in pipeline order (what ``stage reached`` in the manifest refers to)
