@@ -39,7 +39,7 @@ from typing import Iterable
 
 import numpy as np
 
-from .atomic import write_json, write_text
+from .atomic import load_npz, save_npz, write_json, write_text
 from .data import HexMesh, Part, Polycube, PolycubeCloud, SurfaceSample
 from .errors import PolycubeError
 from .pipeline import OracleSource, PartResult, PipelineConfig
@@ -460,8 +460,6 @@ _EXACT_MAP = ("polycube_vertices", "surface_vertices", "surface_faces")
 
 def _exact_map_arrays(path) -> dict:
     """The exact polycube -> part map a classical cloud file carries (empty for other clouds)."""
-    from .atomic import load_npz
-
     arrays = load_npz(path, _EXACT_MAP)
     return arrays if len(arrays) == len(_EXACT_MAP) else {}
 
@@ -569,15 +567,11 @@ def report_export(hexc: str | os.PathLike, extracted: str | os.PathLike, loaded:
 
 
 def _save_arrays(dest, meta: dict, **arrays) -> Path:
-    from .atomic import save_npz
-
     meta_bytes = np.frombuffer(json.dumps(_plain(meta), sort_keys=True).encode(), dtype=np.uint8)
     return save_npz(dest, __meta__=meta_bytes, **arrays)
 
 
 def _load_arrays(path) -> tuple[dict, dict]:
-    from .atomic import load_npz
-
     arrays = load_npz(path)
     meta = arrays.pop("__meta__", None)
     return arrays, (json.loads(bytes(meta).decode()) if meta is not None else {})

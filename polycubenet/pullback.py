@@ -1330,10 +1330,11 @@ def guarded_spot_capture(
         dist, idx = dist.reshape(len(far), k), idx.reshape(len(far), k)
         used: set = set()
         moved = refused = tried = 0
-        for r in np.argsort(-gap[far]):
+        order = np.argsort(-gap[far])
+        for i, r in enumerate(order):
             if tries is not None and tried >= tries:
-                refused += 1
-                continue
+                refused += len(order) - i  # the nearer spots this round leaves untried
+                break
             s = S[far[r]]
             for dn, j in zip(dist[r], idx[r]):
                 n = int(nodes[j])
@@ -1810,8 +1811,8 @@ def mend_spots(mesh: HexMesh, V: np.ndarray, F: np.ndarray, config: PullbackConf
     with its uncovered spots captured (:func:`guarded_spot_capture`, at ``config.capture_target`` and under
     ``config.capture_sj``), the interior smoothed again (:func:`guarded_smooth`), when that brings it within the
     bar; else ``mesh`` as it is.  Any other mesh, and one more than ``config.capture_max`` off, is returned as
-    it is.  ``meta["spots"]`` says what was tried
-    (moves kept, samples left, farthest sample before and after), also when the mend is not kept.
+    it is.  ``meta["spots"]`` says what was tried (moves kept, samples left, farthest sample before and after),
+    also when the mend is not kept, or why none was tried.
 
     ``V``, ``F``, ``diagonal``: as for :func:`pull_back` (``mesh`` in the units of ``V``)."""
     d = mesh.meta.get("hausdorff")
