@@ -23,6 +23,10 @@ polycube does, or nothing does; the second table counts the learned path's meshe
 A third table splits the parts by the features their descriptions name (:func:`shape_class`: no slanted end,
 a slanted end, a slanted end and a round through-hole) and counts in each the first draws accepted at
 extraction, the learned path's meshes and the classical chain's.
+A fourth splits them by the part's sharpest convex edge (``unseen_parts.py``'s ``knife_edge_deg``: the largest
+angle between the normals of two faces meeting on a convex edge, 90 on a box; :data:`EDGE_BINS`), and the examples
+alike (computed from ``examples/parts``): where a slanted cut crosses a hole, pocket or slot, or a hole grazes
+an edge, it leaves a knife edge that no example has.
 """
 from __future__ import annotations
 
@@ -58,6 +62,42 @@ def bucket(row: list, min_sj: float, bar: float) -> str:
     if sj < min_sj:
         return "under the quality bar"
     return "not valid"  # pragma: no cover - a row the meshing run marked failed for another reason
+
+
+#: the bins of the sharpest convex edge (degrees between the two faces' normals): up to 130 (the faces meet at 50
+#: degrees or more), 130-150, above 150 (a knife edge under 30 degrees)
+EDGE_BINS = ("sharpest edge <= 130 deg", "sharpest edge 130-150 deg", "sharpest edge > 150 deg")
+
+
+def edge_class(deg: float | None) -> str | None:
+    """The :data:`EDGE_BINS` bin of a sharpest convex edge of ``deg`` degrees (None: not known)."""
+    if deg is None:
+        return None
+    return EDGE_BINS[0] if deg <= 130 else EDGE_BINS[1] if deg <= 150 else EDGE_BINS[2]
+
+
+def edge_table(rows: list[dict], learned: dict, edges: dict | None = None) -> dict:
+    """``{bin: [meshed, parts]}`` of the learned path's ``learned`` mesh rows, by each part's sharpest convex
+    edge: ``edges[name]`` when given, else the row's ``knife_edge_deg``; parts with neither are left out."""
+    deg = {r["part"]: r.get("knife_edge_deg") for r in rows}
+    deg.update(edges or {})
+    out: dict = {}
+    for name, row in learned.items():
+        b = edge_class(deg.get(name))
+        if b is not None:
+            cell = out.setdefault(b, [0, 0])
+            cell[0] += bool(row[0])
+            cell[1] += 1
+    return out
+
+
+def example_edges(names) -> dict:
+    """The sharpest convex edge of each example part named in ``names`` (``examples/parts/<name>.step``; a
+    name without a file is left out)."""
+    from unseen_parts import knife_edge_deg
+
+    files = [ROOT / "examples/parts" / f"{n}.step" for n in sorted(names)]
+    return {p.stem: knife_edge_deg(p) for p in files if p.is_file()}
 
 
 CLASSICAL = ("flattening meets the bars", "only a voxel polycube does", "nothing meets the bars")
@@ -157,6 +197,8 @@ def main(argv=None) -> int:
     table, total, ex_total = {}, Counter(), Counter()
     cross, ex_cross = {c: [0, 0] for c in CLASSICAL}, None
     shapes: dict = {}
+    edges: dict = {}
+    ex_edges = None
     for f in files:
         d = json.loads(f.read_text())
         if args.extraction_only:
@@ -174,8 +216,14 @@ def main(argv=None) -> int:
                 cross[cls][0] += m
                 cross[cls][1] += k
         add_shapes(shapes, shape_table(d.get("rows", []), d["mesh"], classical))
+        for b, (m, k) in edge_table(d.get("rows", []), d["mesh"]).items():
+            cell = edges.setdefault(b, [0, 0])
+            cell[0] += m
+            cell[1] += k
         if not ex_total:  # the examples are the same ten parts in every file: count them once
             ex_total.update(bucket(r, min_sj, bar) for r in d.get("example_mesh", {}).values())
+            if d.get("example_mesh"):
+                ex_edges = edge_table([], d["example_mesh"], example_edges(d["example_mesh"]))
             ex_classical = classical_rows("examples", None, f.parent)
             if ex_classical is not None:
                 ex_cross = cross_table(d.get("example_mesh", {}), ex_classical)
@@ -212,7 +260,16 @@ def main(argv=None) -> int:
                 c = shapes[cls]
                 cl = "-" if c["classical"] is None else c["classical"]
                 print(f"{cls:<30}{c['parts']:>6}{c['accepted']:>10}{c['meshed']:>8}{cl:>10}")
+    if edges:
+        print(f"\nlearned path meshed / parts, by the part's sharpest convex edge (degrees between its faces' normals):"
+              f"\n{'sharpest convex edge':<30}{'never-seen':>12}{'examples':>12}")
+        for b in EDGE_BINS:
+            m, k = edges.get(b, [0, 0])
+            ex = "-" if ex_edges is None else "{}/{}".format(*ex_edges.get(b, [0, 0]))
+            print(f"{b:<30}{m:>7d}/{k:<4d}{ex:>12}")
     write_json(args.json, {"files": [str(f.relative_to(ROOT)) if f.is_relative_to(ROOT) else str(f) for f in files],
+                           "by_edge": {b: edges[b] for b in EDGE_BINS if b in edges} or None,
+                           "examples_by_edge": ex_edges,
                            "min_sj": min_sj, "hausdorff_bar": bar, "sets": table, "all": dict(total),
                            "examples": dict(ex_total),
                            "by_classical": {cls: v for cls, v in cross.items() if v[1]} or None,

@@ -5,6 +5,8 @@ import json
 import sys
 from pathlib import Path
 
+import pytest
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 import unseen_losses  # noqa: E402
@@ -101,3 +103,28 @@ def test_runs_without_meshes_are_read_at_extraction_only(tmp_path, capsys):
     by = json.loads(out.read_text())["by_shape"]
     assert by == {"no slanted end": {"parts": 2, "accepted": 2, "meshed": None, "classical": None},
                   "slanted end and round hole": {"parts": 4, "accepted": 2, "meshed": None, "classical": None}}
+
+
+def test_parts_are_split_by_their_sharpest_convex_edge(tmp_path, capsys, monkeypatch):
+    assert [unseen_losses.edge_class(d) for d in (None, 90.0, 130.0, 130.5, 150.0, 165.9)] == \
+        [None, *unseen_losses.EDGE_BINS[:1] * 2, *unseen_losses.EDGE_BINS[1:2] * 2, unseen_losses.EDGE_BINS[2]]
+    rows = [{"part": "kept", "knife_edge_deg": 90.0}, {"part": "no polycube", "knife_edge_deg": 145.0},
+            {"part": "inverted", "knife_edge_deg": 160.0}, {"part": "off", "knife_edge_deg": 120.0},
+            {"part": "poor"}]  # no angle recorded: left out
+    monkeypatch.setattr(unseen_losses, "example_edges", lambda names: {"a": 90.0, "b": 140.0})
+    f = tmp_path / "u5.json"
+    f.write_text(json.dumps({"family": "machined", "seed": 5, "mesh": ROWS, "rows": rows,
+                             "example_mesh": {"a": ROWS["kept"], "b": ROWS["off"]}}))
+    out = tmp_path / "losses.json"
+    assert unseen_losses.main([str(f), "--json", str(out)]) == 0
+    res = json.loads(out.read_text())
+    lo, mid, hi = unseen_losses.EDGE_BINS
+    assert res["by_edge"] == {lo: [1, 2], mid: [0, 1], hi: [0, 1]}
+    assert res["examples_by_edge"] == {lo: [1, 1], mid: [0, 1]}
+    assert "sharpest convex edge" in capsys.readouterr().out
+
+
+def test_the_examples_sharpest_edges_are_read_from_their_files():
+    edges = unseen_losses.example_edges(["l_block", "t_slot_block", "no_such_part"])  # right-angled blocks
+    assert sorted(edges) == ["l_block", "t_slot_block"]
+    assert all(88.0 < d < 95.0 for d in edges.values())  # 90 up to the tessellation of the STEP faces
