@@ -114,15 +114,10 @@ def build_part(occ, rng: np.random.Generator, family: str = "blocks") -> str:
 def knife_edge_deg(path: Path) -> float:
     """The sharpest convex edge of a part: the largest angle (degrees) between the normals of two
     triangles that meet on a convex edge, 90 on a box; above 135 a knife edge whose faces meet at
-    less than 45 degrees (:data:`FAMILIES`)."""
-    import trimesh
-
+    less than 45 degrees (:data:`FAMILIES`; :func:`polycubenet.io.sharpest_convex_edge_deg`)."""
     from polycubenet.io import load_part
 
-    p = load_part(path)
-    m = trimesh.Trimesh(p.vertices, p.faces, process=False)
-    convex = m.face_adjacency_convex
-    return float(np.degrees(m.face_adjacency_angles[convex]).max()) if convex.any() else 0.0
+    return float(load_part(path).meta["sharpest_edge_deg"])
 
 
 def make_parts(folder: Path, count: int, seed: int, family: str = "blocks") -> list[tuple[Path, str]]:

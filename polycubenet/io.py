@@ -204,8 +204,8 @@ def load_part(
     -------
     Part
         ``vertices : (V, 3) float64``, ``faces : (F, 3) int64`` (outward), and ``meta`` with
-        ``path``, ``format``, ``units``, ``genus``, ``area``, ``volume``, ``repairs`` (list of
-        sentences), ``n_vertices``, ``n_faces``, ``bbox_diagonal``; CAD files also
+        ``path``, ``format``, ``units``, ``genus``, ``sharpest_edge_deg`` (:func:`sharpest_convex_edge_deg`),
+        ``area``, ``volume``, ``repairs`` (list of sentences), ``n_vertices``, ``n_faces``, ``bbox_diagonal``; CAD files also
         ``file_units`` (the unit declared in the file, or None) and ``mesh_size``.
 
     Raises
@@ -456,6 +456,7 @@ def part_from_arrays(
     area = float(_face_areas(v, f).sum())
     meta.update(
         genus=int(genus),
+        sharpest_edge_deg=sharpest_convex_edge_deg(v, f),
         area=area,
         volume=volume,
         repairs=repairs,
@@ -466,6 +467,42 @@ def part_from_arrays(
     return Part(
         vertices=np.ascontiguousarray(v, dtype=np.float64), faces=np.ascontiguousarray(f, dtype=np.int64), meta=meta
     )
+
+
+def sharpest_convex_edge_deg(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """The sharpest convex edge of a closed, outward-oriented triangle surface: the largest angle (degrees)
+    between the normals of two triangles that meet on an edge where the surface bends outward; 90 on a box,
+    near 180 at a knife edge (where a slanted cut crosses a hole, or a hole grazes an edge), 0 with no convex
+    edge.  A polycube maps such an edge onto a right angle or a flat face, so past about 130 degrees (faces
+    meeting under 50 degrees) a polycube hex mesh is far harder to keep within its bars."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    if len(f) < 2:
+        return 0.0
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    # each directed half-edge (a, b) of face i, with the face's third vertex; its twin is (b, a)
+    a = f.ravel()
+    b = np.roll(f, -1, axis=1).ravel()
+    c = np.roll(f, -2, axis=1).ravel()
+    face = np.repeat(np.arange(len(f)), 3)
+    m = int(len(v))
+    key = a * m + b
+    twin = b * m + a
+    order = np.argsort(key)
+    pos = np.searchsorted(key[order], twin)
+    pos = np.minimum(pos, len(key) - 1)
+    j = order[pos]
+    has = key[j] == twin
+    i, j = np.nonzero(has)[0], j[has]
+    i, j = i[face[i] < face[j]], j[face[i] < face[j]]  # each edge once
+    fi, fj = face[i], face[j]
+    # convex: the other face's third vertex lies behind this face's plane
+    convex = np.einsum("ij,ij->i", n[fi], v[c[j]] - v[a[i]]) < 0
+    if not convex.any():
+        return 0.0
+    cos = np.einsum("ij,ij->i", n[fi[convex]], n[fj[convex]])
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).max())
 
 
 def self_intersecting_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -605,3 +605,28 @@ def test_open3d_in_one_thread_then_pymeshlab_in_another_exits_cleanly(tmp_path):
     """))
     r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0 and "done" in r.stdout, (r.returncode, r.stderr[-500:])
+
+
+def _prism(polygon, height):
+    """A closed triangle surface: the convex ``polygon`` (counter-clockwise, (x, y)) extruded by ``height``."""
+    p = np.asarray(polygon, float)
+    k = len(p)
+    v = np.vstack([np.c_[p, np.zeros(k)], np.c_[p, np.full(k, height)]])
+    f = [[0, j + 1, j] for j in range(1, k - 1)] + [[k, k + j, k + j + 1] for j in range(1, k - 1)]
+    for j in range(k):
+        a, b = j, (j + 1) % k
+        f += [[a, b, k + b], [a, k + b, k + a]]
+    return v, np.asarray(f)
+
+
+def test_the_sharpest_convex_edge_of_a_part_is_measured_on_load():
+    from polycubenet.io import part_from_arrays, sharpest_convex_edge_deg
+
+    box_v, box_f = _prism([(0, 0), (2, 0), (2, 1), (0, 1)], 1.0)
+    box = part_from_arrays(box_v, box_f)
+    assert box.meta["sharpest_edge_deg"] == pytest.approx(90.0)
+    # a wedge whose faces meet at 30 degrees: a knife edge, the normals 150 degrees apart
+    wedge = part_from_arrays(*_prism([(0, 0), (1, 0), (0, np.tan(np.radians(30)))], 0.3))
+    assert wedge.meta["sharpest_edge_deg"] == pytest.approx(150.0, abs=1e-6)
+    # turned inside out every edge bends inward: no convex edge at all
+    assert sharpest_convex_edge_deg(box.vertices, box.faces[:, ::-1]) == 0.0
