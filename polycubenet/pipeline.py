@@ -635,12 +635,14 @@ def _pull_back_classical(mesh_pc, corr, Vc, F, config: PipelineConfig, diagonal:
 
 
 def _add_provenance(path: Path, row: dict) -> None:
-    """Record which polycube was used (and why) in an existing ``quality.json``."""
+    """Record which polycube was used (and why), and the part's sharpest convex edge, in an existing
+    ``quality.json``."""
     import json
 
     d = json.loads(Path(path).read_text())
     d["provenance"] = row.get("provenance")
     d["fallback_reason"] = row.get("fallback_reason")
+    d["sharpest_edge_deg"] = row.get("sharpest_edge_deg")
     write_json(path, d)
 
 

@@ -64,6 +64,7 @@ def test_auto_falls_back_when_the_learned_polycube_fails_validation(l_block_file
     out = res.write(tmp_path / "out")
     qj = json.loads((out / "quality.json").read_text())
     assert qj["provenance"] == "classical" and "genus 1" in qj["fallback_reason"]
+    assert qj["sharpest_edge_deg"] == pytest.approx(90.0, abs=0.5)
     rj = json.loads((out / "result.json").read_text())
     assert rj["provenance"] == "classical" and rj["fallback_reason"] == res.fallback_reason
     assert rj["sharpest_edge_deg"] == pytest.approx(90.0, abs=0.5)  # an L-block: right angles, no knife edge
