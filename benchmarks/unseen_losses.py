@@ -23,7 +23,7 @@ polycube does, or nothing does; the second table counts the learned path's meshe
 A third table splits the parts by the features their descriptions name (:func:`shape_class`: no slanted end,
 a slanted end, a slanted end and a round through-hole) and counts in each the first draws accepted at
 extraction, the learned path's meshes and the classical chain's.
-A fourth splits them by the part's sharpest convex edge (``unseen_parts.py``'s ``knife_edge_deg``: the largest
+A fourth splits them (learned path and classical chain) by the part's sharpest convex edge (``unseen_parts.py``'s ``knife_edge_deg``: the largest
 angle between the normals of two faces meeting on a convex edge, 90 on a box; :data:`EDGE_BINS`), and the examples
 alike (computed from ``examples/parts``): where a slanted cut crosses a hole, pocket or slot, or a hole grazes
 an edge, it leaves a knife edge that no example has.
@@ -76,18 +76,22 @@ def edge_class(deg: float | None) -> str | None:
     return EDGE_BINS[0] if deg <= 130 else EDGE_BINS[1] if deg <= 150 else EDGE_BINS[2]
 
 
-def edge_table(rows: list[dict], learned: dict, edges: dict | None = None) -> dict:
-    """``{bin: [meshed, parts]}`` of the learned path's ``learned`` mesh rows, by each part's sharpest convex
-    edge: ``edges[name]`` when given, else the row's ``knife_edge_deg``; parts with neither are left out."""
+def edge_table(rows: list[dict], learned: dict, edges: dict | None = None, classical: dict | None = None) -> dict:
+    """``{bin: [meshed, parts, classical meets the bars, parts with a classical row]}`` of the learned path's
+    ``learned`` mesh rows (and ``classical``'s, :func:`classical_rows`, when given), by each part's sharpest
+    convex edge: ``edges[name]`` when given, else the row's ``knife_edge_deg``; parts with neither are left out."""
     deg = {r["part"]: r.get("knife_edge_deg") for r in rows}
     deg.update(edges or {})
     out: dict = {}
     for name, row in learned.items():
         b = edge_class(deg.get(name))
         if b is not None:
-            cell = out.setdefault(b, [0, 0])
+            cell = out.setdefault(b, [0, 0, 0, 0])
             cell[0] += bool(row[0])
             cell[1] += 1
+            if classical is not None and name in classical:
+                cell[2] += classical_class(classical[name]) != CLASSICAL[2]
+                cell[3] += 1
     return out
 
 
@@ -216,14 +220,15 @@ def main(argv=None) -> int:
                 cross[cls][0] += m
                 cross[cls][1] += k
         add_shapes(shapes, shape_table(d.get("rows", []), d["mesh"], classical))
-        for b, (m, k) in edge_table(d.get("rows", []), d["mesh"]).items():
-            cell = edges.setdefault(b, [0, 0])
-            cell[0] += m
-            cell[1] += k
+        for b, counts in edge_table(d.get("rows", []), d["mesh"], classical=classical).items():
+            cell = edges.setdefault(b, [0, 0, 0, 0])
+            for i, v in enumerate(counts):
+                cell[i] += v
         if not ex_total:  # the examples are the same ten parts in every file: count them once
             ex_total.update(bucket(r, min_sj, bar) for r in d.get("example_mesh", {}).values())
             if d.get("example_mesh"):
-                ex_edges = edge_table([], d["example_mesh"], example_edges(d["example_mesh"]))
+                ex_edges = edge_table([], d["example_mesh"], example_edges(d["example_mesh"]),
+                                      classical_rows("examples", None, f.parent))
             ex_classical = classical_rows("examples", None, f.parent)
             if ex_classical is not None:
                 ex_cross = cross_table(d.get("example_mesh", {}), ex_classical)
@@ -261,12 +266,15 @@ def main(argv=None) -> int:
                 cl = "-" if c["classical"] is None else c["classical"]
                 print(f"{cls:<30}{c['parts']:>6}{c['accepted']:>10}{c['meshed']:>8}{cl:>10}")
     if edges:
-        print(f"\nlearned path meshed / parts, by the part's sharpest convex edge (degrees between its faces' normals):"
-              f"\n{'sharpest convex edge':<30}{'never-seen':>12}{'examples':>12}")
+        print(f"\nmeshed / parts by the part's sharpest convex edge (degrees between its faces' normals), the learned "
+              f"path and the classical chain:\n{'sharpest convex edge':<30}{'learned':>10}{'classical':>11}"
+              f"{'examples':>10}{'classical':>11}")
         for b in EDGE_BINS:
-            m, k = edges.get(b, [0, 0])
-            ex = "-" if ex_edges is None else "{}/{}".format(*ex_edges.get(b, [0, 0]))
-            print(f"{b:<30}{m:>7d}/{k:<4d}{ex:>12}")
+            m, k, c, kc = edges.get(b, [0, 0, 0, 0])
+            em, ek, ec, ekc = (ex_edges or {}).get(b, [0, 0, 0, 0])
+            ex = "-" if ex_edges is None else f"{em}/{ek}"
+            exc = "-" if ex_edges is None or not ekc else f"{ec}/{ekc}"
+            print(f"{b:<30}{f'{m}/{k}':>10}{(f'{c}/{kc}' if kc else '-'):>11}{ex:>10}{exc:>11}")
     write_json(args.json, {"files": [str(f.relative_to(ROOT)) if f.is_relative_to(ROOT) else str(f) for f in files],
                            "by_edge": {b: edges[b] for b in EDGE_BINS if b in edges} or None,
                            "examples_by_edge": ex_edges,

@@ -119,8 +119,14 @@ def test_parts_are_split_by_their_sharpest_convex_edge(tmp_path, capsys, monkeyp
     assert unseen_losses.main([str(f), "--json", str(out)]) == 0
     res = json.loads(out.read_text())
     lo, mid, hi = unseen_losses.EDGE_BINS
-    assert res["by_edge"] == {lo: [1, 2], mid: [0, 1], hi: [0, 1]}
-    assert res["examples_by_edge"] == {lo: [1, 1], mid: [0, 1]}
+    assert res["by_edge"] == {lo: [1, 2, 0, 0], mid: [0, 1, 0, 0], hi: [0, 1, 0, 0]}  # no classical rows
+    assert res["examples_by_edge"] == {lo: [1, 1, 0, 0], mid: [0, 1, 0, 0]}
+    # with the classical chain's rows for the set: "kept" meets the bars, "inverted" does not, "off" is not there
+    (tmp_path / "unseen_classical_machined5.json").write_text(json.dumps(
+        {"mesh": {"kept": [True, 0.5, "classical", 6.0, 0.0], "no polycube": [True, 0.3, "voxel", 9.0, 0.005],
+                  "inverted": [False, 0.1, "voxel+3*", 90.0, 0.02]}}))
+    assert unseen_losses.main([str(f), "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["by_edge"] == {lo: [1, 2, 1, 1], mid: [0, 1, 1, 1], hi: [0, 1, 0, 1]}
     assert "sharpest convex edge" in capsys.readouterr().out
 
 
