@@ -23,10 +23,10 @@ polycube does, or nothing does; the second table counts the learned path's meshe
 A third table splits the parts by the features their descriptions name (:func:`shape_class`: no slanted end,
 a slanted end, a slanted end and a round through-hole) and counts in each the first draws accepted at
 extraction, the learned path's meshes and the classical chain's.
-A fourth splits them (learned path and classical chain) by the part's sharpest convex edge (``unseen_parts.py``'s ``knife_edge_deg``: the largest
-angle between the normals of two faces meeting on a convex edge, 90 on a box; :data:`EDGE_BINS`), and the examples
-alike (computed from ``examples/parts``): where a slanted cut crosses a hole, pocket or slot, or a hole grazes
-an edge, it leaves a knife edge that no example has.
+A fourth splits them, the learned path's meshes and the classical chain's, by the part's sharpest convex edge
+(``unseen_parts.py``'s ``knife_edge_deg``: the largest angle between the normals of two faces meeting on a convex
+edge, 90 on a box; :data:`EDGE_BINS`), and the examples alike (computed from ``examples/parts``): where a slanted
+cut crosses a hole, pocket or slot, or a hole grazes an edge, it leaves a knife edge that no example has.
 """
 from __future__ import annotations
 
@@ -226,10 +226,9 @@ def main(argv=None) -> int:
                 cell[i] += v
         if not ex_total:  # the examples are the same ten parts in every file: count them once
             ex_total.update(bucket(r, min_sj, bar) for r in d.get("example_mesh", {}).values())
-            if d.get("example_mesh"):
-                ex_edges = edge_table([], d["example_mesh"], example_edges(d["example_mesh"]),
-                                      classical_rows("examples", None, f.parent))
             ex_classical = classical_rows("examples", None, f.parent)
+            if d.get("example_mesh"):
+                ex_edges = edge_table([], d["example_mesh"], example_edges(d["example_mesh"]), ex_classical)
             if ex_classical is not None:
                 ex_cross = cross_table(d.get("example_mesh", {}), ex_classical)
     if args.extraction_only:
