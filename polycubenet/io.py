@@ -475,34 +475,17 @@ def sharpest_convex_edge_deg(vertices: np.ndarray, faces: np.ndarray) -> float:
     near 180 at a knife edge (where a slanted cut crosses a hole, or a hole grazes an edge), 0 with no convex
     edge.  A polycube maps such an edge onto a right angle or a flat face, so past about 130 degrees (faces
     meeting under 50 degrees) a polycube hex mesh is far harder to keep within its bars."""
+    from .classical import _dihedral, edge_topology
+    from .frame import face_normals_areas
+
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
-    if len(f) < 2:
-        return 0.0
-    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-    # each directed half-edge (a, b) of face i, with the face's third vertex; its twin is (b, a)
-    a = f.ravel()
-    b = np.roll(f, -1, axis=1).ravel()
-    c = np.roll(f, -2, axis=1).ravel()
-    face = np.repeat(np.arange(len(f)), 3)
-    m = int(len(v))
-    key = a * m + b
-    twin = b * m + a
-    order = np.argsort(key)
-    pos = np.searchsorted(key[order], twin)
-    pos = np.minimum(pos, len(key) - 1)
-    j = order[pos]
-    has = key[j] == twin
-    i, j = np.nonzero(has)[0], j[has]
-    i, j = i[face[i] < face[j]], j[face[i] < face[j]]  # each edge once
-    fi, fj = face[i], face[j]
-    # convex: the other face's third vertex lies behind this face's plane
-    convex = np.einsum("ij,ij->i", n[fi], v[c[j]] - v[a[i]]) < 0
-    if not convex.any():
-        return 0.0
-    cos = np.einsum("ij,ij->i", n[fi[convex]], n[fj[convex]])
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).max())
+    edges, pair = edge_topology(f)
+    n, _ = face_normals_areas(v, f)
+    # convex: the second face's third vertex lies behind the first face's plane
+    third = f[pair[:, 1]].sum(axis=1) - edges.sum(axis=1)
+    convex = np.einsum("ij,ij->i", n[pair[:, 0]], v[third] - v[edges[:, 0]]) < 0
+    return float(_dihedral(n, pair[convex]).max()) if convex.any() else 0.0
 
 
 def self_intersecting_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

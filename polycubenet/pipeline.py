@@ -239,7 +239,7 @@ class PartResult:
             "timings": {k: round(v, 4) for k, v in self.timings.items()},
             "genus": self.part_meta.get("genus"),
             # a knife edge (far above 90) is where polycube hex meshes struggle: io.sharpest_convex_edge_deg
-            "sharpest_edge_deg": _round_or_none(self.part_meta.get("sharpest_edge_deg"), 1),
+            "sharpest_edge_deg": None if (e := self.part_meta.get("sharpest_edge_deg")) is None else round(float(e), 1),
             "provenance": self.provenance or (self.cloud.meta.get("provenance") if self.cloud is not None else None),
             "fallback_reason": self.fallback_reason,
             # a learned polycube: pulled back by its exact realisation or by the registration (polycubenet.realise)
@@ -273,10 +273,6 @@ class PartResult:
             _add_provenance(out / "quality.json", self.row())
         write_json(out / "result.json", {**self.row(), **(extra or {})})
         return out
-
-
-def _round_or_none(x, nd: int):
-    return None if x is None else round(float(x), nd)
 
 
 class _Clock:
