@@ -253,6 +253,25 @@ def load_part(
         vertices, faces, cad_meta = _read_cad(path, fmt, mesh_size=mesh_size, max_faces=max_faces, unit=unit,
                                               repairs=repairs)
         meta.update(cad_meta)
+        try:
+            return part_from_arrays(vertices, faces, path=path, keep_largest=keep_largest, max_faces=max_faces,
+                                    meta=meta, repairs=repairs, record_orientation=False)
+        except (OpenBoundaryError, NonManifoldError, EmptyMeshError) as exc:
+            # a solid whose surface mesh is not closed: gmsh left a face unmeshed or a sliver face in
+            # pieces (a chamfer that meets a fillet can leave such a spline face); heal the shapes
+            # (OpenCASCADE's ShapeFix: degenerate and small edges and faces, sewing) and mesh once more
+            healed: list[str] = []
+            try:
+                vertices, faces, cad_meta = _read_cad(path, fmt, mesh_size=mesh_size, max_faces=max_faces,
+                                                      unit=unit, repairs=healed, heal=True)
+                meta.update(cad_meta)
+                return part_from_arrays(vertices, faces, path=path, keep_largest=keep_largest, max_faces=max_faces,
+                                        meta=meta, record_orientation=False,
+                                        repairs=healed + [f"healed the CAD shapes and meshed them again (OpenCASCADE "
+                                                          f"ShapeFix): the first surface mesh was not usable: "
+                                                          f"{exc.reason}"])
+            except (OpenBoundaryError, NonManifoldError, EmptyMeshError):
+                raise exc from None  # the first mesh's problem is the one to report
     else:
         readers = {"stl": _read_stl, "off": _read_off, "obj": _read_obj, "ply": _read_ply, "glb": _read_glb,
                    **{f: _read_volume for f in VOLUME_FORMATS}}
@@ -1056,7 +1075,7 @@ def quiet_stdout() -> Iterator[None]:
 
 
 def _read_cad(path: Path, fmt: str, *, mesh_size: float | None, max_faces: int, unit: str | None,
-              repairs: list[str] | None = None):
+              repairs: list[str] | None = None, heal: bool = False):
     head = _read_bytes(path)
     file_units = _check_cad_file(path, fmt, head)
     scale = _MM_PER_UNIT[unit or "mm"]  # OpenCASCADE gives millimetres; we divide by this
@@ -1075,6 +1094,10 @@ def _read_cad(path: Path, fmt: str, *, mesh_size: float | None, max_faces: int, 
         gmsh.model.add(f"polycubenet-load-{id(path)}")
         try:
             _import_in_mm(gmsh, path, fmt)
+            if heal:
+                with quiet_stdout():
+                    gmsh.model.occ.healShapes()
+                    gmsh.model.occ.synchronize()
             if not gmsh.model.getEntities(2):
                 raise EmptyMeshError(path, f"the {fmt.upper()} file contains no surfaces or solids")
             xmin, ymin, zmin, xmax, ymax, zmax = gmsh.model.getBoundingBox(-1, -1)

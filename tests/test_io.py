@@ -630,3 +630,40 @@ def test_the_sharpest_convex_edge_of_a_part_is_measured_on_load():
     assert wedge.meta["sharpest_edge_deg"] == pytest.approx(150.0, abs=1e-6)
     # turned inside out every edge bends inward: no convex edge at all
     assert sharpest_convex_edge_deg(box.vertices, box.faces[:, ::-1]) == 0.0
+
+
+def _cad_read_that_leaves_a_face_unmeshed(monkeypatch, heal_fixes: bool) -> list:
+    """``io._read_cad`` as gmsh gives it for a solid whose first surface mesh is not closed: one face of
+    the mesh missing unless the shapes are healed (and then only when ``heal_fixes``)."""
+    import polycubenet.io as pio
+
+    real, calls = pio._read_cad, []
+
+    def read(path, fmt, *, heal=False, **kw):
+        calls.append(heal)
+        v, f, meta = real(path, fmt, **kw)
+        return v, (f if heal and heal_fixes else f[1:]), meta
+
+    monkeypatch.setattr(pio, "_read_cad", read)
+    return calls
+
+
+def test_a_cad_solid_whose_first_surface_mesh_is_open_is_healed_and_meshed_again(monkeypatch):
+    """A chamfer meeting a fillet can leave OpenCASCADE a spline face that gmsh meshes into slivers and a
+    neighbour face it leaves empty (session 48: a finished never-seen part); the loader heals the shapes,
+    meshes again, and says so in the repairs."""
+    calls = _cad_read_that_leaves_a_face_unmeshed(monkeypatch, heal_fixes=True)
+    part = load_part(Path(__file__).resolve().parents[1] / "examples/parts/l_block.step")
+    assert calls == [False, True]
+    assert part.meta["genus"] == 0
+    (first, *_) = part.meta["repairs"]
+    assert first.startswith("healed the CAD shapes") and "not closed: 3 boundary edges" in first
+
+
+def test_a_cad_solid_that_healing_does_not_close_reports_its_first_mesh_problem(monkeypatch):
+    from polycubenet.errors import OpenBoundaryError
+
+    calls = _cad_read_that_leaves_a_face_unmeshed(monkeypatch, heal_fixes=False)
+    with pytest.raises(OpenBoundaryError, match=r"l_block\.step: the surface is not closed: 3 boundary edges"):
+        load_part(Path(__file__).resolve().parents[1] / "examples/parts/l_block.step")
+    assert calls == [False, True]

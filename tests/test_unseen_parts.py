@@ -71,3 +71,25 @@ def test_the_map_column_says_when_a_realisation_put_back_thin_slabs_of_the_part(
     assert unseen_parts.map_name({"map": "registration (why not the realisation)"}) == "registration"
     assert unseen_parts.map_name({"map": "exact (realised)", "realised": {"inserted_slabs": 0}}) == "exact"
     assert unseen_parts.map_name({"map": "exact (realised)", "realised": {"inserted_slabs": 2}}) == "exact, 2 inserted"
+
+
+def _surface_types(family: str, seed=(11, 7)) -> tuple[str, list[str]]:
+    from polycubenet.io import gmsh_session
+
+    with gmsh_session() as gmsh:
+        gmsh.model.add(family)
+        try:
+            desc = unseen_parts.build_part(gmsh.model.occ, np.random.default_rng(list(seed)), family)
+            types = [gmsh.model.getType(d, t) for d, t in gmsh.model.occ.getEntities(2)]
+            assert len(gmsh.model.occ.getEntities(3)) == 1
+        finally:
+            gmsh.model.remove()
+    return desc, types
+
+
+def test_finished_parts_are_the_machined_ones_with_rounded_and_chamfered_edges():
+    desc_c, types_c = _surface_types("machined")
+    desc_f, types_f = _surface_types("finished")
+    assert desc_f.startswith(desc_c + ", fillet")  # the same part, then finished
+    assert set(types_c) == {"Plane"}  # a block with a slanted end: planes only
+    assert len(types_f) > len(types_c) and set(types_f) - {"Plane"}  # a fillet's round face (a chamfer adds a plane)
