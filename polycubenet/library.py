@@ -58,7 +58,7 @@ SIDECAR_SUFFIX = ".polycube.npz"
 
 #: bump a stage's version when its code changes what it writes: every key downstream changes
 STAGE_VERSIONS = {
-    "load_sample": "1",
+    "load_sample": "2",  # 2: CAD solids healed before meshing, zero-area caps split, sharpest_edge_deg
     "polycube": "1",
     "extract": "4",  # 2: carries the classical exact map; 3: the voxel solid taken as built; 4: no plane refit
     "register": "2",  # 2: the classical exact map replaces CPD
