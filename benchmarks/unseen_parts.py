@@ -166,28 +166,52 @@ def knife_edge_deg(path: Path) -> float:
     return float(load_part(path).meta["sharpest_edge_deg"])
 
 
-def make_parts(folder: Path, count: int, seed: int, family: str = "blocks") -> list[tuple[Path, str]]:
-    from polycubenet.io import gmsh_session, load_part, quiet_stdout
+def _build_step(path: Path, seed: int, k: int, family: str) -> None:
+    """Build part ``k`` of ``seed`` and write it to ``path``, its description beside it (``.txt``); run in a
+    child process by :func:`make_parts`."""
+    from polycubenet.io import gmsh_session, quiet_stdout
 
+    with gmsh_session() as gmsh:
+        gmsh.model.add(path.stem)
+        try:
+            desc = build_part(gmsh.model.occ, np.random.default_rng([seed, k]), family)
+            with quiet_stdout():
+                gmsh.write(str(path))
+        finally:
+            gmsh.model.remove()
+    path.with_suffix(".txt").write_text(desc)
+
+
+def make_parts(folder: Path, count: int, seed: int, family: str = "blocks") -> list[tuple[Path, str]]:
+    """``count`` parts of ``family`` from ``seed`` as STEP files in ``folder``, with their descriptions.  Each
+    is built in a child process: OpenCASCADE can crash (a fillet of ``finished``, seed 211 part 8) or hang on
+    a random build, and then that draw is skipped, as one that OCC refuses or that does not load as one closed
+    solid is."""
+    import multiprocessing
+
+    from polycubenet.io import load_part
+
+    ctx = multiprocessing.get_context("spawn")
     out = []
     k = 0
     while len(out) < count and k < 4 * count:
-        rng = np.random.default_rng([seed, k])
         path = folder / f"{family}_{seed}_{k:03d}.step"
+        child = ctx.Process(target=_build_step, args=(path, seed, k, family))
+        child.start()
+        child.join(120)
+        if child.is_alive():
+            child.kill()
+            child.join()
         k += 1
-        with gmsh_session() as gmsh:
-            gmsh.model.add(path.stem)
-            try:
-                desc = build_part(gmsh.model.occ, rng, family)
-                with quiet_stdout():
-                    gmsh.write(str(path))
-            except Exception:  # noqa: BLE001 - a random build that OCC refuses: draw the next one
-                continue
-            finally:
-                gmsh.model.remove()
+        if child.exitcode != 0 or not path.with_suffix(".txt").exists():
+            path.unlink(missing_ok=True)
+            continue
+        desc = path.with_suffix(".txt").read_text()
+        path.with_suffix(".txt").unlink()
         try:
             load_part(path)
         except Exception:  # noqa: BLE001 - a shape that does not load as one closed solid: next one
+            path.unlink()
             continue
         out.append((path, desc))
     return out
