@@ -1,6 +1,6 @@
 """Parts the project has never seen: how often is the learned polycube accepted on them?
 
-    python benchmarks/unseen_parts.py [--count 16] [--seed 7] [--family blocks|mixed|machined] [--mesh] [--anchors even] \\
+    python benchmarks/unseen_parts.py [--count 16] [--seed 7] [--family blocks|mixed|machined|finished] [--mesh] [--anchors even] \\
         [--draws default] [--json benchmarks/results/unseen_parts.json]
     python benchmarks/unseen_parts.py --count 16 --seed 61 --family mixed --make-only DIR   # the STEP files only
 
@@ -9,7 +9,8 @@ Builds ``--count`` new CAD-like parts with gmsh's OpenCASCADE kernel, each from 
 ``--seed`` for a fresh set): a base block, then 0-2 blocks fused on it (steps and bosses),
 0-2 through-holes (round or square), 0-1 pockets and sometimes a slot, with random sizes;
 ``--family mixed`` or ``machined`` also round bosses, a slanted end and a random rotation (:data:`FAMILIES`:
-the mixed family's slanted end carries a knife-edge notch, the machined family's is a plain plane cut).
+the mixed family's slanted end carries a knife-edge notch, the machined family's is a plain plane cut;
+``finished`` is the machined part with some edges filleted and chamfered, as CAD parts and the examples are).
 For each part it runs the learned source exactly as ``mesh_part`` does (the shipped
 checkpoint, its default steps, 4096 learned points): generate, outlier filter, structure
 extraction with the part's genus; ``--mesh`` also meshes every part (and the examples) through
@@ -338,7 +339,8 @@ def main(argv=None) -> int:
     ap.add_argument("--family", choices=FAMILIES, default="blocks",
                     help="blocks: axis-aligned steps, bosses, holes, pockets, slots; mixed: also round bosses, "
                          "slanted cuts (with a knife-edge notch) and a random rotation; machined: the mixed parts "
-                         "with each slanted end a plain plane cut")
+                         "with each slanted end a plain plane cut; finished: the machined parts with 1-4 edges "
+                         "filleted and 0-2 chamfered")
     ap.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT))
     ap.add_argument("--steps", type=int, default=None,
                     help="DDIM steps (default: the checkpoint's own default_steps, as mesh_part uses)")
