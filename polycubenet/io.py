@@ -1317,46 +1317,46 @@ def _drop_degenerate_faces(v: np.ndarray, f: np.ndarray, min_area: float, repair
 
 
 def _split_caps(v: np.ndarray, f: np.ndarray, cap: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-    """For each cap ``(x, y, m)`` (``m`` between ``x`` and ``y``: the vertex opposite the longest edge) whose
-    long edge has exactly one other face ``(y, x, d)``, neither a cap: that face becomes ``(y, m, d)`` and
-    ``(m, x, d)`` and the cap is marked for no further dropping (``cap`` cleared, the face itself replaced by the
-    first half).  Returns the new faces (appended halves), the caps still to drop, and the number split."""
-    f = f.copy()
+    """Split caps away.  For each cap ``(x, y, m)`` (``m`` the vertex opposite the longest edge, so between ``x``
+    and ``y``) whose long edge has exactly one other face ``(y, x, d)``, not itself a cap: that face becomes
+    ``(y, m, d)`` and ``(m, x, d)`` (the second appended; a later cap may split either half again) and the cap
+    is removed.  Returns the faces, the mask of faces to drop (the caps, split or not: one that could not be
+    split is dropped as before) and the number split."""
+    faces = f.tolist()
     owners: dict[tuple[int, int], list[int]] = {}
-    for i, tri in enumerate(f.tolist()):
-        for k in range(3):
-            owners.setdefault((tri[k], tri[(k + 1) % 3]), []).append(i)
-    cap = cap.copy()
-    alive = np.ones(len(f), dtype=bool)
-    extra: list[list[int]] = []
+
+    def own(j: int) -> None:
+        t = faces[j]
+        for q in range(3):
+            owners.setdefault((t[q], t[(q + 1) % 3]), []).append(j)
+
+    def disown(j: int) -> None:
+        t = faces[j]
+        for q in range(3):
+            owners[(t[q], t[(q + 1) % 3])].remove(j)
+
+    for j in range(len(faces)):
+        own(j)
     n = 0
     for i in np.flatnonzero(cap):
-        tri = f[i].tolist()
-        lengths = [np.linalg.norm(v[tri[(k + 1) % 3]] - v[tri[k]]) for k in range(3)]
-        k = int(np.argmax(lengths))
+        tri = faces[i]
+        k = int(np.argmax([np.linalg.norm(v[tri[(q + 1) % 3]] - v[tri[q]]) for q in range(3)]))
         x, y, m = tri[k], tri[(k + 1) % 3], tri[(k + 2) % 3]
-        other = [j for j in owners.get((y, x), []) if alive[j] and j < len(cap) and not cap[j]]
+        other = [j for j in owners.get((y, x), []) if not (j < len(cap) and cap[j])]
         if len(other) != 1 or len(owners.get((x, y), [])) != 1:
             continue
         j = other[0]
-        jt = f[j].tolist()
+        jt = faces[j]
         d = jt[(jt.index(y) + 2) % 3]
-        for e in ((jt[0], jt[1]), (jt[1], jt[2]), (jt[2], jt[0])):
-            owners[e].remove(j)
-        for e in ((x, y), (y, m), (m, x)):
-            owners[e].remove(i)
-        alive[i] = False
-        cap[i] = True  # the cap itself goes
-        f[j] = (y, m, d)
-        extra.append([m, x, d])
-        for tri2, idx in (((y, m, d), j), ((m, x, d), len(f) + len(extra) - 1)):
-            for q in range(3):
-                owners.setdefault((tri2[q], tri2[(q + 1) % 3]), []).append(idx)
+        disown(i)
+        disown(j)
+        faces[j] = [y, m, d]
+        faces.append([m, x, d])
+        own(j)
+        own(len(faces) - 1)
         n += 1
-    if extra:
-        f = np.vstack([f, np.asarray(extra, dtype=f.dtype)])
-        cap = np.concatenate([cap, np.zeros(len(extra), dtype=bool)])
-    return f, cap, n
+    drop = np.concatenate([cap, np.zeros(len(faces) - len(cap), dtype=bool)])
+    return np.asarray(faces, dtype=f.dtype), drop, n
 
 
 def _drop_duplicate_faces(f: np.ndarray, repairs: list[str]) -> np.ndarray:

@@ -679,3 +679,20 @@ def test_a_zero_area_cap_is_split_away_and_the_surface_stays_closed():
     assert part.meta["genus"] == 0 and abs(part.meta["volume"] - 2.0) < 1e-9
     assert any(r.startswith("removed 1 zero-area caps") for r in part.meta["repairs"])
     assert not any(r.startswith("dropped") for r in part.meta["repairs"])
+
+
+def test_two_caps_in_a_row_are_split_away_one_after_the_other():
+    """The second cap's long edge is a half the first split made: both go, the surface stays closed."""
+    import trimesh
+
+    from polycubenet.io import part_from_arrays
+
+    box = trimesh.creation.box(extents=(2.0, 1.0, 1.0))
+    V, F = np.asarray(box.vertices, float), np.asarray(box.faces).tolist()
+    a, b, c = F[0]
+    m2, m1 = len(V), len(V) + 1  # a, m2, m1, b along the edge a-b
+    V = np.vstack([V, V[a] + 0.25 * (V[b] - V[a]), V[a] + 0.6 * (V[b] - V[a])])
+    faces = [[a, m2, c], [m2, m1, c], [m1, b, c]] + F[1:] + [[a, b, m1], [a, m1, m2]]
+    part = part_from_arrays(V, np.asarray(faces))
+    assert part.meta["genus"] == 0 and abs(part.meta["volume"] - 2.0) < 1e-9
+    assert any(r.startswith("removed 2 zero-area caps") for r in part.meta["repairs"]), part.meta["repairs"]
