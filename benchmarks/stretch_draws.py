@@ -31,16 +31,15 @@ def stretched_draw(loaded, Vc, F, scale, seed: int, n: int = 4096) -> np.ndarray
     """The model's cloud ``(n, 6)`` for the canonical part ``(Vc, F)`` stretched by ``scale`` (3 factors) and
     re-normalised to a unit diagonal, mapped back to the unstretched frame (points divided, normals multiplied
     by the stretch, then normalised)."""
-    from polycubenet.inference import generate, model_anchors
+    from model_failures import learned_cloud
+
     from polycubenet.sampling import poisson_disk
 
     s = np.asarray(scale, dtype=float)
     Vs = Vc * s
     k = 1.0 / np.linalg.norm(Vs.max(0) - Vs.min(0))
     Vs = Vs * k
-    sample = poisson_disk(Vs, F, 4096, seed=0)
-    a = model_anchors(loaded, Vs, F, n, seed)
-    (cloud,) = generate([sample.points], n, model=loaded, steps=1, seed=seed, device="cpu", anchors=[a])
+    cloud = learned_cloud(loaded, Vs, F, poisson_disk(Vs, F, 4096, seed=0), n, 1, seed)
     P = cloud[:, :3] / (s * k)
     N = cloud[:, 3:6] * s
     return np.hstack([P, N / np.linalg.norm(N, axis=1, keepdims=True)])
@@ -53,8 +52,9 @@ def table(rows: list[dict]) -> None:
     print(f"{'part':<20}" + "".join(f"{v:>7}" for v in names))
     for p in dict.fromkeys(r["part"] for r in rows):
         print(f"{p:<20}" + "".join(f"{hits[(p, v)]:>7}" for v in names))
+        family = p.split("_")[0] if p.split("_")[0] in ("machined", "mixed", "blocks", "finished") else "examples"
         for v in names:
-            fam[p.split("_")[0] if p.split("_")[0] in ("machined", "mixed", "blocks", "finished") else "examples"][v] += hits[(p, v)]
+            fam[family][v] += hits[(p, v)]
     for f, c in fam.items():
         print(f"{'total ' + f:<20}" + "".join(f"{c[v]:>7}" for v in names))
 
