@@ -249,6 +249,8 @@ class PartResult:
             "sj_avg": q.get("sj_avg"),
             "valid": q.get("valid"),
             "hausdorff": (q.get("surface") or {}).get("hausdorff"),
+            # poor hexes untangled with some surface nodes left off the surface (pullback.ease_poor_hexes)
+            "eased": _eased_summary(self.mesh.meta.get("eased") if self.mesh is not None else None),
         }
 
     def write(self, out_dir: str | Path, formats: tuple[str, ...] = ("vtu",), extra: dict | None = None) -> Path:
@@ -273,6 +275,16 @@ class PartResult:
             _add_provenance(out / "quality.json", self.row())
         write_json(out / "result.json", {**self.row(), **(extra or {})})
         return out
+
+
+def _eased_summary(eased: dict | None) -> dict | None:
+    """What the manifest says of a kept easing (:func:`polycubenet.pullback.ease_poor_hexes`): the hexes eased,
+    the surface nodes among the moved ones, and how far the farthest was left off the surface (relative to the
+    part's diagonal); None when none was kept."""
+    if not eased or not eased.get("kept"):
+        return None
+    return {"hexes": eased["hexes"], "surface_nodes": eased["surface_nodes"],
+            "off_surface_max": round(float(eased["off_surface_max"]), 6)}
 
 
 class _Clock:

@@ -16,6 +16,7 @@ from polycubenet.pullback import (
     boundary_face_counts,
     chart_labels,
     classify_boundary,
+    ease_poor_hexes,
     guarded_corner_snap,
     guarded_spot_capture,
     mend_spots,
@@ -528,3 +529,36 @@ def test_a_mesh_off_the_part_at_one_spot_is_mended_and_one_on_it_is_left():
     far = HexMesh(pts, m.hexes, m.boundary, meta={"valid": True, "hausdorff": 0.05, "sj_min": float(sj.min())})
     assert mend_spots(far, V, F) is far and not far.meta["spots"]["kept"] and "5.00 %" in far.meta["spots"]["skipped"]
     assert mend_spots(far, V, F, PullbackConfig(capture_max=0.06)).meta["spots"]["kept"]
+
+
+def test_a_few_inverted_hexes_are_eased_with_the_surface_nodes_near_the_surface_and_a_good_mesh_is_left():
+    """ease_poor_hexes on a finished mesh (the part's units): the box mesh with a face node pushed through the
+    first layer (inverted hexes) comes back valid, its moved surface nodes within ``ease_slack`` of the surface
+    (on it with no slack); a valid mesh at the quality bar is returned as it is, and so is one with more poor
+    hexes than a spot has (a folded map)."""
+    m = structured_box(4)
+    V, F = polycube_surface(np.array([0.0, 4.0]), np.array([0.0, 4.0]), np.array([0.0, 4.0]),
+                            np.ones((1, 1, 1), bool), h=0.5)
+    diag = float(np.sqrt(48.0))
+    pts = m.points.copy()
+    top = int(np.argmin(np.linalg.norm(pts - [2.0, 2.0, 4.0], axis=1)))
+    pts[top] = [2.3, 2.2, 2.6]  # below the first layer's nodes (z = 3)
+    sj = scaled_jacobian(pts, m.hexes)
+    assert sj.min() < 0
+    bad = HexMesh(pts, m.hexes, m.boundary, meta={"valid": False, "sj_min": float(sj.min()), "timings": {}})
+    surface = PartSurface(V, F)
+    for slack in (PullbackConfig().ease_slack, 0.0):
+        out = ease_poor_hexes(bad, V, F, PullbackConfig(ease_slack=slack))
+        assert out is not bad and out.meta["eased"]["kept"] and out.meta["valid"]
+        assert scaled_jacobian(out.points, out.hexes).min() >= 0.2
+        assert out.meta["hausdorff"] <= 0.01
+        moved = np.flatnonzero(np.linalg.norm(out.points - pts, axis=1) > 0)
+        nodes = np.intersect1d(moved, boundary_quads(m.hexes))
+        assert top in nodes
+        gap = surface.closest(out.points[nodes])[1]
+        assert gap.max() <= slack * diag + 1e-6 * diag  # the closest-point query is float32
+        assert out.meta["eased"]["off_surface_max"] == pytest.approx(gap.max() / diag, abs=1e-6)
+    good = HexMesh(m.points, m.hexes, m.boundary, meta={"valid": True, "sj_min": 1.0, "hausdorff": 0.0})
+    assert ease_poor_hexes(good, V, F) is good and "eased" not in good.meta
+    folded = ease_poor_hexes(bad, V, F, PullbackConfig(ease_max_hexes=int((sj < 0.22).sum()) - 1))
+    assert folded is bad and not bad.meta["eased"]["kept"] and "hexes under SJ" in bad.meta["eased"]["skipped"]
