@@ -1842,10 +1842,11 @@ def ease_poor_hexes(mesh: HexMesh, V: np.ndarray, F: np.ndarray, config: Pullbac
     them move again (:func:`optimise_quality`), the surface nodes among them kept within ``config.ease_slack`` of the
     surface instead of on it.  The result is kept only when it is valid and, for a mesh that was valid already, has
     a higher minimum SJ and stays within ``max(bar, distance before)`` of the part
-    (:data:`polycubenet.tol.HAUSDORFF_REL_MAX`); a mesh with more than ``config.ease_max_hexes`` poor hexes (a
-    folded map, not a spot) is left as it is.  ``meta["eased"]`` says what was tried: hexes eased, nodes moved,
-    how far the farthest surface node was left off the surface (relative to the diagonal), the minimum SJ and the
-    distance before, and whether the result was kept.
+    (:data:`polycubenet.tol.HAUSDORFF_REL_MAX`; a farther one gets its spots mended first, :func:`mend_spots`, when
+    ``config.capture_spots``); a mesh with more than ``config.ease_max_hexes`` poor hexes (a folded map, not a
+    spot) is left as it is.  ``meta["eased"]`` says what was tried: the hexes eased, the nodes free to move, the
+    surface nodes moved and how far the farthest of them was left off the surface (relative to the diagonal), the
+    minimum SJ and the distance before and after, and whether the result was kept.
 
     ``V``, ``F``, ``diagonal``: as for :func:`pull_back` (``mesh`` in the units of ``V``)."""
     sj_before = mesh.meta.get("sj_min")
@@ -1884,21 +1885,31 @@ def ease_poor_hexes(mesh: HexMesh, V: np.ndarray, F: np.ndarray, config: Pullbac
 
     Y, _ = optimise_quality(X, hexes, movable=region, project=within_slack, project_nodes=loose, config=config)
     st = _stats(Y, hexes)
-    info.update(nodes=int(region.sum()), surface_nodes=int(len(loose)), sj_min=st["sj_min"],
-                off_surface_max=float(surf.closest(Y[loose])[1].max()) * diag / (diagonal or diag) if len(loose) else 0.0)
+    shifted = loose[np.any(Y[loose] != X[loose], axis=1)]  # the surface nodes the easing moved
+    off = float(surf.closest(Y[shifted])[1].max()) * diag / (diagonal or diag) if len(shifted) else 0.0
+    info.update(nodes=int(region.sum()), surface_nodes=int(len(shifted)), sj_min=st["sj_min"], off_surface_max=off)
     meta = {**mesh.meta, "timings": dict(mesh.meta.get("timings", {}))}
     meta["timings"]["ease"] = time.perf_counter() - t0
     if st["inverted"] or st["degenerate"] or not st["sj_min"] > 0 or (valid_before and st["sj_min"] <= sj_before):
         mesh.meta["eased"] = info
         mesh.meta.setdefault("timings", {})["ease"] = meta["timings"]["ease"]
         return mesh
-    meta.update(valid=True, sj_min=st["sj_min"], sj_avg=st["sj_avg"], deviation=float(boundary_deviation(Y, hexes, surf)),
-                stages={**mesh.meta.get("stages", {}), "eased": st},
-                warnings=[w for w in mesh.meta.get("warnings", []) if not w.startswith("The pulled-back mesh is not valid")])
+    meta.update(valid=True, sj_min=st["sj_min"], sj_avg=st["sj_avg"],
+                deviation=float(boundary_deviation(Y, hexes, surf)), stages={**mesh.meta.get("stages", {}), "eased": st},
+                warnings=[w for w in mesh.meta.get("warnings", [])
+                          if not w.startswith("The pulled-back mesh is not valid")])
     eased = _with_hausdorff(HexMesh(points=Y * diag + centre, hexes=hexes, boundary=mesh.boundary, meta=meta),
                             V, F, diagonal)
     info["hausdorff"] = eased.meta["hausdorff"]
-    if valid_before and eased.meta["hausdorff"] > max(tol.HAUSDORFF_REL_MAX, info["hausdorff_before"] or 0.0):
+    allowed = max(tol.HAUSDORFF_REL_MAX, info["hausdorff_before"] or 0.0)
+    if valid_before and eased.meta["hausdorff"] > allowed and config.capture_spots:
+        # the slack can leave a knife edge's tip a little farther off: its spots mended (mend_spots' guard keeps
+        # every hex at min(capture_sj, its SJ))
+        mended = mend_spots(eased, V, F, config, diagonal)
+        info["mended"] = mended is not eased
+        if mended is not eased:
+            eased = mended
+    if valid_before and eased.meta["hausdorff"] > allowed:
         mesh.meta["eased"] = info
         return mesh
     eased.meta["eased"] = {**info, "kept": True}
