@@ -359,9 +359,11 @@ def cylinder_runs():
     mesh = trimesh.creation.cylinder(radius=0.6, height=2.0, sections=48)
     runs = {}
     for key, over in {
-        "old_bar": dict(release_sj=0.1, release_rounds=2),
-        "default": {},
-        "no_deviation_allowed": dict(release_max_deviation=0.0),
+        # the release alone (ease_poor_hexes would lift the poor corners the release leaves)
+        "old_bar": dict(release_sj=0.1, release_rounds=2, ease_spots=False),
+        "default": dict(ease_spots=False),
+        "no_deviation_allowed": dict(release_max_deviation=0.0, ease_spots=False),
+        "old_bar_eased": dict(release_sj=0.1, release_rounds=2),
     }.items():
         # min_sj=None: the flattening's mesh is kept whatever its quality (this is about the pull-back, not the policy)
         cfg = PipelineConfig(polycube="classical", target_hexes=1500, pullback=PullbackConfig(**over), min_sj=None)
@@ -377,6 +379,19 @@ def test_releasing_poor_corners_lifts_the_minimum_within_the_fidelity_bar(cylind
     assert new.report.sj_min >= 0.35, new.report.summary()
     assert new.mesh.meta["projection"]["released"] > 0 and not new.mesh.meta["projection"]["release_reverted"]
     assert new.report.surface["hausdorff"] <= 0.01
+
+
+def test_poor_corners_a_release_leaves_are_eased_within_the_fidelity_bar(cylinder_runs):
+    """The flat pillow corners the 0.1 release bar leaves (SJ < 0.2) lifted by ease_poor_hexes, the mesh still
+    within the bar and the moved surface nodes within the slack of the surface."""
+    old, eased = cylinder_runs["old_bar"], cylinder_runs["old_bar_eased"]
+    assert old.report.sj_min < 0.2
+    assert eased.report.valid and eased.report.sj_min >= 0.2, eased.report.summary()
+    assert eased.report.surface["hausdorff"] <= 0.01
+    info = eased.mesh.meta["eased"]
+    assert info["kept"] and 0 < info["off_surface_max"] <= PullbackConfig().ease_slack * (1 + 1e-4)
+    assert eased.row()["eased"] == {"hexes": info["hexes"], "surface_nodes": info["surface_nodes"],
+                                    "off_surface_max": round(info["off_surface_max"], 6)}
 
 
 def test_a_release_that_costs_fidelity_is_undone_after_the_final_coverage_fit(cylinder_runs):
