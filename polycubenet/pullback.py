@@ -1854,10 +1854,7 @@ def ease_poor_hexes(mesh: HexMesh, V: np.ndarray, F: np.ndarray, config: Pullbac
     if sj_before is None or (valid_before and sj_before >= config.ease_below):
         return mesh
     t0 = time.perf_counter()
-    V = np.asarray(V, dtype=np.float64)
-    lo, hi = V.min(axis=0), V.max(axis=0)
-    centre, diag = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
-    X = (np.asarray(mesh.points, dtype=np.float64) - centre) / diag
+    V, centre, diag, X = _unit_frame(V, mesh.points)
     hexes = np.asarray(mesh.hexes, dtype=np.int64)
     sj, _ = scaled_jacobian_and_degenerate(X, hexes)
     poor = sj < config.ease_sj
@@ -1919,6 +1916,15 @@ def ease_poor_hexes(mesh: HexMesh, V: np.ndarray, F: np.ndarray, config: Pullbac
     return eased
 
 
+def _unit_frame(V: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """``(V, centre, diag, X)``: the surface as float64, the centre and diagonal of its bounding box, and
+    ``points`` moved to that centre and divided by that diagonal (the units the pull-back works in)."""
+    V = np.asarray(V, dtype=np.float64)
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    centre, diag = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
+    return V, centre, diag, (np.asarray(points, dtype=np.float64) - centre) / diag
+
+
 def mend_spots(mesh: HexMesh, V: np.ndarray, F: np.ndarray, config: PullbackConfig = PullbackConfig(),
                diagonal: float | None = None) -> HexMesh:
     """A valid pulled-back mesh off the part (``meta["hausdorff"]`` above :data:`polycubenet.tol.HAUSDORFF_REL_MAX`)
@@ -1937,10 +1943,7 @@ def mend_spots(mesh: HexMesh, V: np.ndarray, F: np.ndarray, config: PullbackConf
                                                         f"{100 * config.capture_max:g} % a mend is tried at"}
         return mesh
     t0 = time.perf_counter()
-    V = np.asarray(V, dtype=np.float64)
-    lo, hi = V.min(axis=0), V.max(axis=0)
-    centre, diag = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
-    X = (np.asarray(mesh.points, dtype=np.float64) - centre) / diag
+    V, centre, diag, X = _unit_frame(V, mesh.points)
     hexes = mesh.hexes
     surf = PartSurface((V - centre) / diag, F, config.feature_angle_deg)
     nodes = np.unique(boundary_quads(hexes))
