@@ -1907,8 +1907,7 @@ def ease_poor_hexes(mesh: HexMesh, V: np.ndarray, F: np.ndarray, config: Pullbac
         # every hex at min(capture_sj, its SJ))
         mended = mend_spots(eased, V, F, config, diagonal)
         info["mended"] = mended is not eased
-        if mended is not eased:
-            eased = mended
+        eased = mended
     if valid_before and eased.meta["hausdorff"] > allowed:
         mesh.meta["eased"] = info
         return mesh
