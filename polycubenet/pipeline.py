@@ -139,6 +139,13 @@ class PipelineConfig:
     learned_maps: tuple[str, ...] = ("registration", "exact", "refined")
     snap_planes: float | None = None
 
+    def __post_init__(self):
+        # the pull-back eases a mesh under the chain's own quality bar (pullback.ease_poor_hexes): a run with
+        # another min_sj eases at that bar, not at the pull-back's standalone default; with min_sj None (any
+        # valid mesh ends the chain) the pull-back's own ease_below stands
+        if self.min_sj is not None and self.pullback.ease_below != self.min_sj:
+            object.__setattr__(self, "pullback", dataclasses.replace(self.pullback, ease_below=float(self.min_sj)))
+
 
 #: the values of ``PipelineConfig.polycube`` (and of the command-line ``--polycube``): ``policy.MODES``
 

@@ -245,14 +245,16 @@ class PullbackConfig:
         ``final_coverage_sj``: a mesh off the part fails, one at 0.22 is above the quality bar (0.2).
     ease_spots : bool
         Step 7 (:func:`ease_poor_hexes`): a mesh that is not valid, or valid under ``ease_below``, with at most
-        ``ease_max_hexes`` hexes under ``ease_sj``, is untangled once more around those hexes with the boundary
+        ``ease_max_hexes`` hexes under ``ease_below + ease_margin``, is untangled once more around those hexes with the boundary
         nodes there allowed up to ``ease_slack`` off the part's surface; kept only when it is then valid (and,
         if it was valid before, better and no farther off the part than the bar or than before).
     ease_below : float
-        A valid mesh whose minimum SJ is at least this is left as it is (the pipeline's quality bar,
-        ``PipelineConfig.min_sj``).
-    ease_sj : float
-        The hexes to ease: those under this SJ, with ``ease_rings`` rings of their neighbours.
+        A valid mesh whose minimum SJ is at least this is left as it is.  Inside the pipeline it is the
+        pipeline's quality bar (``PipelineConfig`` sets it from ``min_sj`` when that is not None); this default
+        is for the pull-back used alone.
+    ease_margin : float
+        The hexes to ease: those under ``ease_below + ease_margin`` (0.22 at the pipeline's default bar), with
+        ``ease_rings`` rings of their neighbours.
     ease_rings : int
         Rings of neighbouring hexes whose nodes move with the poor hexes' own.
     ease_max_hexes : int
@@ -314,7 +316,7 @@ class PullbackConfig:
     capture_sj: float = 0.22
     ease_spots: bool = True
     ease_below: float = 0.2
-    ease_sj: float = 0.22
+    ease_margin: float = 0.02
     ease_rings: int = 2
     ease_max_hexes: int = 64
     ease_slack: float = 0.2 * tol.HAUSDORFF_REL_MAX
@@ -1838,9 +1840,9 @@ def ease_poor_hexes(mesh: HexMesh, V: np.ndarray, F: np.ndarray, config: Pullbac
 
     Where a part has a knife edge (a slanted cut crossing a hole: faces meeting at 20-30 degrees) that no polycube
     edge maps to, the pull-back holds every surface node on the surface, and a handful of hexes at the edge stay
-    inverted or flat.  Here the nodes of the hexes under ``config.ease_sj`` and of ``config.ease_rings`` rings around
-    them move again (:func:`optimise_quality`), the surface nodes among them kept within ``config.ease_slack`` of the
-    surface instead of on it.  The result is kept only when it is valid and, for a mesh that was valid already, has
+    inverted or flat.  Here the nodes of the hexes under ``config.ease_below + config.ease_margin`` and of
+    ``config.ease_rings`` rings around them move again (:func:`optimise_quality`), the surface nodes among them kept
+    within ``config.ease_slack`` of the surface instead of on it.  The result is kept only when it is valid and, for a mesh that was valid already, has
     a higher minimum SJ and stays within ``max(bar, distance before)`` of the part
     (:data:`polycubenet.tol.HAUSDORFF_REL_MAX`; a farther one gets its spots mended first, :func:`mend_spots`, when
     ``config.capture_spots``); a mesh with more than ``config.ease_max_hexes`` poor hexes (a folded map, not a
@@ -1857,11 +1859,12 @@ def ease_poor_hexes(mesh: HexMesh, V: np.ndarray, F: np.ndarray, config: Pullbac
     V, centre, diag, X = _unit_frame(V, mesh.points)
     hexes = np.asarray(mesh.hexes, dtype=np.int64)
     sj, _ = scaled_jacobian_and_degenerate(X, hexes)
-    poor = sj < config.ease_sj
+    under = config.ease_below + config.ease_margin
+    poor = sj < under
     info = {"kept": False, "hexes": int(poor.sum()), "sj_min_before": float(sj_before),
             "hausdorff_before": mesh.meta.get("hausdorff")}
     if not poor.any() or poor.sum() > config.ease_max_hexes:
-        mesh.meta["eased"] = {**info, "skipped": f"{int(poor.sum())} hexes under SJ {config.ease_sj:g}"}
+        mesh.meta["eased"] = {**info, "skipped": f"{int(poor.sum())} hexes under SJ {under:g}"}
         return mesh
     P = len(X)
     inc, _ = _hex_incidence(hexes, P)

@@ -577,3 +577,27 @@ def test_a_few_inverted_hexes_are_eased_with_the_surface_nodes_near_the_surface_
     assert ease_poor_hexes(good, V, F) is good and "eased" not in good.meta
     folded = ease_poor_hexes(bad, V, F, PullbackConfig(ease_max_hexes=int((sj < 0.22).sum()) - 1))
     assert folded is bad and not bad.meta["eased"]["kept"] and "hexes under SJ" in bad.meta["eased"]["skipped"]
+
+
+def test_the_pipeline_eases_at_its_own_quality_bar():
+    """PipelineConfig hands its min_sj to the pull-back's easing: a valid mesh at SJ ~0.3 is left as it is at the
+    default bar (0.2) and eased at a bar of 0.45; with min_sj None the pull-back's own ease_below stands."""
+    from polycubenet.pipeline import PipelineConfig
+
+    m = structured_box(4)
+    V, F = polycube_surface(np.array([0.0, 4.0]), np.array([0.0, 4.0]), np.array([0.0, 4.0]),
+                            np.ones((1, 1, 1), bool), h=0.5)
+    pts = m.points.copy()
+    inner = int(np.argmin(np.linalg.norm(pts - [2.0, 2.0, 3.0], axis=1)))
+    pts[inner] = [2.3, 2.25, 3.3]  # an interior node pulled off its place: poor (SJ 0.27), not inverted
+    sj = scaled_jacobian(pts, m.hexes)
+    assert 0.2 < sj.min() < 0.4, sj.min()
+    poor = HexMesh(pts, m.hexes, m.boundary, meta={"valid": True, "sj_min": float(sj.min()), "hausdorff": 0.0,
+                                                   "timings": {}})
+    assert PipelineConfig().pullback.ease_below == 0.2
+    assert ease_poor_hexes(poor, V, F, PipelineConfig().pullback) is poor and "eased" not in poor.meta
+    strict = PipelineConfig(min_sj=0.45).pullback
+    assert strict.ease_below == 0.45 and PipelineConfig(min_sj=None).pullback.ease_below == PullbackConfig().ease_below
+    out = ease_poor_hexes(poor, V, F, strict)
+    assert out is not poor and out.meta["eased"]["kept"] and out.meta["sj_min"] > sj.min()
+    assert scaled_jacobian(out.points, out.hexes).min() == pytest.approx(out.meta["sj_min"], abs=1e-6)
