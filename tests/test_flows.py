@@ -441,26 +441,27 @@ def test_part_over_the_time_limit_fails_alone_and_the_batch_goes_on(prefect_harn
     def slow(*a, **k):
         calls.append(1)
         if len(calls) == 1:  # the first part to get there is stuck
-            release.wait(120)
+            release.wait(300)
         return real(*a, **k)
 
     monkeypatch.setattr(library, "cleanup_extract", slow)
     from flows import mesh_library as ml
 
     # a thread cannot be stopped: the flow (its thread pool) ends only when the stuck call returns, so the
-    # call is released as soon as its part has been written off
+    # call is released as soon as its part has been written off.  The limit leaves the other part (~10 s alone)
+    # room on a loaded machine: at 30 s it once failed too with the suite beside two other processes on 2 cores
     monkeypatch.setattr(ml, "PROGRESS_HOOKS", [lambda ev: ev["status"] == "failed" and release.set()])
     try:
         t0 = time.monotonic()
-        _, res = _mesh([part_lib / f"synth-{s}.stl" for s in GOOD], tmp_path / "out", part_timeout=30.0)
-        assert time.monotonic() - t0 < 100  # did not wait for the stuck stage
+        _, res = _mesh([part_lib / f"synth-{s}.stl" for s in GOOD], tmp_path / "out", part_timeout=60.0)
+        assert time.monotonic() - t0 < 240  # did not wait for the stuck stage (held up to 300 s)
     finally:
         release.set()
     rows = res["rows"]
     assert sorted(r["status"] for r in rows) == ["failed", "meshed"], [r["error"] for r in rows]
     bad = next(r for r in rows if r["status"] == "failed")
     assert bad["stage"] == "extract"
-    assert bad["error"].startswith("PartTimeout:") and "over the per-part limit of 30 s" in bad["error"]
+    assert bad["error"].startswith("PartTimeout:") and "over the per-part limit of 60 s" in bad["error"]
     manifest = library.read_manifest(tmp_path / "out")
     assert sorted(r["status"] for r in manifest["parts"]) == ["failed", "meshed"]
 
