@@ -2,6 +2,7 @@
 
     polycubenet mesh INPUT... -o OUT [--formats vtu,inp] [--size S | --hexes N] [--workers N]
                                      [--dask-address HOST:PORT] [--polycube auto|learned|classical|voxel|oracle]
+                                     [--min-sj SJ]
     polycubenet retry OUT            re-run the failed parts of OUT (earlier stages from the cache)
     polycubenet scan DROP -o OUT     mesh what is new or changed in DROP
     polycubenet train --data DIR --run DIR --publish DIR [--steps N] [--count K]
@@ -55,6 +56,10 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--polycube-points", type=int, default=None, help="points of each classical/voxel polycube cloud")
         p.add_argument("--learned-points", type=int, default=None, help="points the model generates (default 4096)")
         p.add_argument("--seed", type=int, default=0)
+        p.add_argument("--min-sj", type=float, default=None, metavar="SJ",
+                       help="quality bar (default 0.2): a valid mesh whose minimum scaled Jacobian is under it does "
+                            "not end the part's chain of polycube sources (the next is tried, the better mesh kept); "
+                            "the report marks parts meshed under it")
         p.add_argument("--part-timeout", type=float, default=library.DEFAULT_PART_TIMEOUT,
                        help="seconds one part may run before it becomes a failed row and its worker is restarted "
                             f"(default {library.DEFAULT_PART_TIMEOUT:g}; 0: no limit)")
@@ -110,7 +115,7 @@ def _mesh_kwargs(a) -> dict:
         kw.update(target_size=a.size, target_hexes=None)
     elif a.hexes is not None:
         kw["target_hexes"] = a.hexes
-    for src, dst in (("checkpoint", "checkpoint"), ("steps", "steps"), ("points", "n_sample"),
+    for src, dst in (("checkpoint", "checkpoint"), ("steps", "steps"), ("points", "n_sample"), ("min_sj", "min_sj"),
                      ("polycube_points", "n_polycube"), ("learned_points", "n_learned"), ("work", "work")):
         if getattr(a, src) is not None:
             kw[dst] = getattr(a, src)
@@ -162,10 +167,14 @@ def _print_summary(out: str) -> None:
 
     m = library.read_manifest(out)
     rows = m["parts"]
-    print(library.format_table(library.summary_rows(rows)))
+    summary = library.summary_rows(rows)
+    print(library.format_table(summary))
     n_ok = sum(r["status"] == "meshed" for r in rows)
     n_bad = sum(r["status"] == "meshed" and not (r.get("quality") or {}).get("valid") for r in rows)
-    print(f"\n{len(rows)} parts: {n_ok} meshed ({n_bad} of them flagged invalid: see quality.json), {len(rows) - n_ok} failed.  manifest: {Path(out) / library.MANIFEST}"
+    bar = library.quality_bar(m)
+    n_under = sum(library.under_quality_bar(s, bar) for s in summary)
+    under = f", {n_under} valid but under the quality bar (SJ min < {bar:g})" if n_under else ""
+    print(f"\n{len(rows)} parts: {n_ok} meshed ({n_bad} of them flagged invalid: see quality.json{under}), {len(rows) - n_ok} failed.  manifest: {Path(out) / library.MANIFEST}"
           f"  report: {Path(out) / library.REPORT}")
     last = m.get("last_run") or {}
     if last.get("rejected_polycube_seconds"):
@@ -191,7 +200,8 @@ def main(argv: list[str] | None = None) -> int:
         if not (Path(a.out) / library.MANIFEST).is_file():
             print(f"polycubenet: {a.out} has no {library.MANIFEST}", file=sys.stderr)
             return EXIT_USAGE
-        library.write_report_html(a.out, library.read_manifest(a.out)["parts"])
+        manifest = library.read_manifest(a.out)
+        library.write_report_html(a.out, manifest["parts"], min_sj=library.quality_bar(manifest))
         _print_summary(a.out)
         return EXIT_OK
 

@@ -87,6 +87,7 @@ def mesh_library(
     target_hexes: int | None = 5000,
     target_size: float | None = None,
     seed: int = 0,
+    min_sj: float | None = PipelineConfig.min_sj,
     checkpoint: str | None = None,
     steps: int | None = None,
     point_budget: int | None = None,
@@ -111,6 +112,10 @@ def mesh_library(
     fallback : after a ``learned`` / ``oracle`` polycube that fails validation or whose hex mesh
         is not valid, try the classical chain (``auto`` always does)
     n_sample, n_polycube, n_learned, n_register, target_hexes, target_size, seed : :class:`PipelineConfig`
+    min_sj : the quality bar (:class:`PipelineConfig`, 0.2 by default): a valid mesh whose minimum scaled
+        Jacobian is under it does not end a part's chain of polycube sources (the next is tried and the better
+        mesh kept), the pull-back eases meshes under it, and the report marks a part meshed under it (None: any
+        valid mesh ends the chain)
     checkpoint, steps, point_budget, device : the model (``polycube="learned"``; budget: condition +
         output points of one generation batch, default ``inference.DEFAULT_POINT_BUDGET``)
     work : stage files and cache records (default ``<out>/.work``)
@@ -138,7 +143,7 @@ def mesh_library(
     if polycube == "auto":
         polycube, fallback = "learned", True
     config = PipelineConfig(n_sample=n_sample, n_polycube=n_polycube, n_learned=n_learned, n_register=n_register,
-                            target_hexes=target_hexes, target_size=target_size, seed=seed)
+                            target_hexes=target_hexes, target_size=target_size, seed=seed, min_sj=min_sj)
     swept = library.sweep_partials(out_p, work_p, before=time.time())
     if swept:
         logger.info(f"removed {swept} partial files left by an interrupted run")
@@ -369,7 +374,7 @@ def mesh_library(
     rejected = sum(v for r in rows for k, v in r["timings"].items() if k.startswith("rejected_"))
     manifest = write_manifest(final=True)
     all_rows = library.merge_rows(old_rows, rows)
-    report = library.write_report_html(out_p, all_rows)
+    report = library.write_report_html(out_p, all_rows, min_sj=min_sj)
     if artifacts:
         from prefect.artifacts import create_table_artifact
 

@@ -20,7 +20,7 @@ from flows.runners import make_runner
 
 #: manifest parameters that are mesh_library arguments
 _PASSED = ("formats", "polycube", "fallback", "checkpoint", "steps", "work", "load_kw")
-_CONFIG = ("n_sample", "n_polycube", "n_learned", "n_register", "target_hexes", "target_size", "seed")
+_CONFIG = ("n_sample", "n_polycube", "n_learned", "n_register", "target_hexes", "target_size", "seed", "min_sj")
 
 
 def mesh_arguments(manifest: dict) -> dict:

@@ -672,17 +672,34 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join([line(cols), line(["-" * w for w in widths])] + [line(x) for x in cells])
 
 
-def write_report_html(out: str | os.PathLike, rows: list[dict], *, title: str = "PolycubeNet meshing report") -> Path:
+def quality_bar(manifest: dict) -> float | None:
+    """The quality bar (``PipelineConfig.min_sj``) a manifest's run meshed at (None: none recorded)."""
+    return ((manifest.get("parameters") or {}).get("config") or {}).get("min_sj")
+
+
+def under_quality_bar(summary: dict, min_sj: float | None) -> bool:
+    """Whether a :func:`summary_rows` row is a part meshed valid but under the quality bar ``min_sj`` (never
+    with ``min_sj`` None)."""
+    return (min_sj is not None and summary["status"] == "meshed" and summary["valid"]
+            and summary["sj_min"] is not None and summary["sj_min"] < min_sj)
+
+
+def write_report_html(out: str | os.PathLike, rows: list[dict], *, title: str = "PolycubeNet meshing report",
+                      min_sj: float | None = None) -> Path:
     """``<out>/report.html``: counts, a table (status, polycube, quality, time, error) and the
-    pictures of every meshed part (relative links to ``<part>/preview.png``, ``quality.png``)."""
+    pictures of every meshed part (relative links to ``<part>/preview.png``, ``quality.png``).  A part meshed
+    valid but under the quality bar ``min_sj`` is marked as a meshed part not valid is, and counted."""
     out = Path(out)
     esc = html.escape
     n_ok = sum(r["status"] == "meshed" for r in rows)
+    n_under = sum(under_quality_bar(s, min_sj) for s in summary_rows(rows))
+    under = f" {n_under} meshed under the quality bar (SJ min < {min_sj:g})." if n_under else ""
     head = ("<th>part</th><th>status</th><th>stage</th><th>polycube</th><th>hexes</th><th>SJ min</th><th>SJ avg</th>"
             "<th>Hausdorff %</th><th>valid</th><th>time s</th><th>error</th>")
     body = []
     for s in summary_rows(rows):
-        cls = "ok" if s["status"] == "meshed" and s["valid"] else ("warn" if s["status"] == "meshed" else "bad")
+        good = s["status"] == "meshed" and s["valid"] and not under_quality_bar(s, min_sj)
+        cls = "ok" if good else ("warn" if s["status"] == "meshed" else "bad")
         body.append(
             f"<tr class='{cls}'><td><a href='#{esc(s['part'])}'>{esc(s['part'])}</a></td><td>{esc(s['status'])}</td>"
             f"<td>{esc(s['stage'])}</td><td>{esc(s['polycube'])}</td><td>{s['hexes']}</td><td>{_fmt(s['sj_min'])}</td>"
@@ -705,7 +722,7 @@ td, th {{ border: 1px solid #ccc; padding: 3px 8px; font-size: 13px; }} tr.bad {
 tr.warn {{ background: #ffd; }} section img {{ max-width: 480px; margin-right: 1em; }}
 </style></head><body>
 <h1>{esc(title)}</h1>
-<p>{len(rows)} parts: {n_ok} meshed, {len(rows) - n_ok} failed. Generated {time.strftime('%Y-%m-%d %H:%M:%S')}.</p>
+<p>{len(rows)} parts: {n_ok} meshed, {len(rows) - n_ok} failed.{under} Generated {time.strftime('%Y-%m-%d %H:%M:%S')}.</p>
 <table><tr>{head}</tr>
 {chr(10).join(body)}
 </table>
@@ -748,5 +765,5 @@ __all__ = [
     "SidecarOracle", "classical_available", "make_source", "source_extra", "load_sample", "read_loaded",
     "polycube_cloud", "write_generated", "cleanup_extract", "read_extracted", "register", "partition_pullback",
     "pullback_quality", "report_export", "write_synthetic_parts", "read_manifest", "merge_rows", "write_manifest", "summary_rows",
-    "format_table", "load_json", "write_report_html", "thumbnail_data_uri",
+    "format_table", "load_json", "write_report_html", "quality_bar", "under_quality_bar", "thumbnail_data_uri",
 ]

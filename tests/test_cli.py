@@ -12,7 +12,7 @@ from flows import cli
 from polycubenet import library
 
 
-def _manifest(out):
+def _manifest(out, min_sj=None):
     rows = [
         {"name": "bracket", "path": "/parts/bracket.step", "hash": "a" * 64, "status": "meshed", "stage": "export",
          "error": None, "provenance": "learned", "fallback": None, "timings": {"load_sample": 0.5, "export": 1.25},
@@ -24,7 +24,8 @@ def _manifest(out):
     ]
     (out / "bracket").mkdir(parents=True)
     (out / "bracket" / "preview.png").write_bytes(b"\x89PNG\r\n")
-    library.write_manifest(out, rows, parameters={"formats": ["vtu"]})
+    config = {} if min_sj is None else {"config": {"min_sj": min_sj}}
+    library.write_manifest(out, rows, parameters={"formats": ["vtu"], **config})
     return rows
 
 
@@ -39,6 +40,19 @@ def test_report_rebuilds_html_and_prints_the_table(tmp_path, capsys):
     html = (tmp_path / "report.html").read_text()
     assert "bracket/preview.png" in html and "crushed" in html and "12 boundary edges" in html
     assert "crushed/preview.png" not in html  # no pictures for a failed part
+
+
+@pytest.mark.parametrize("bar, under", [(0.2, False), (0.35, True), (None, False)])
+def test_a_part_meshed_under_the_runs_quality_bar_is_marked(tmp_path, capsys, bar, under):
+    """The run's quality bar (its manifest's min_sj) marks a valid part under it in the report and the summary."""
+    _manifest(tmp_path, min_sj=bar)
+    assert cli.main(["report", str(tmp_path)]) == 0
+    text = capsys.readouterr().out
+    html = (tmp_path / "report.html").read_text()
+    row = next(ln for ln in html.splitlines() if ">bracket</a>" in ln)
+    assert ("class='warn'" in row) == under and ("class='ok'" in row) == (not under)
+    assert ("1 meshed under the quality bar (SJ min < 0.35)" in html) == under
+    assert ("1 valid but under the quality bar (SJ min < 0.35)" in text) == under
 
 
 def test_usage_errors_exit_2_without_running_anything(tmp_path, capsys):
@@ -64,6 +78,9 @@ def test_mesh_options_map_to_flow_arguments():
     assert kw["n_sample"] == 2048 and kw["work"] == "w" and "checkpoint" not in kw
     b = cli._parser().parse_args(["mesh", "p", "-o", "o", "--hexes", "800"])
     assert cli._mesh_kwargs(b)["target_hexes"] == 800 and "target_size" not in cli._mesh_kwargs(b)
+    assert "min_sj" not in cli._mesh_kwargs(b)  # the flow's default bar
+    c = cli._parser().parse_args(["mesh", "p", "-o", "o", "--min-sj", "0.3"])
+    assert cli._mesh_kwargs(c)["min_sj"] == 0.3
 
 
 @pytest.mark.parametrize("argv, polycube, fallback", [

@@ -429,6 +429,23 @@ def test_dask_runner_local_cluster(batch, part_lib):
     assert len(manifest["parts"]) == 5  # merged with the earlier rows
 
 
+def test_the_runs_quality_bar_reaches_the_stages_and_a_retry(prefect_harness, part_lib, tmp_path):
+    """``min_sj`` of the flow is the run's quality bar: the stages' config carries it (the chain's bar and the
+    pull-back's easing) and the manifest records it, so that the report marks parts under it and a retry of the
+    folder meshes at the same bar.  (A laxer bar than the default: a stricter one makes every part under it try
+    every map and source, minutes per part.)"""
+    from flows.retry_failed import mesh_arguments
+
+    out = tmp_path / "out"
+    _, res = _mesh([part_lib / f"synth-{GOOD[0]}.stl"], out, min_sj=0.15)
+    (row,) = res["rows"]
+    assert row["status"] == "meshed" and row["quality"]["valid"]
+    manifest = library.read_manifest(out)
+    config = manifest["parameters"]["config"]
+    assert config["min_sj"] == 0.15 and config["pullback"]["ease_below"] == 0.15
+    assert library.quality_bar(manifest) == 0.15 and mesh_arguments(manifest)["min_sj"] == 0.15
+
+
 def test_part_over_the_time_limit_fails_alone_and_the_batch_goes_on(prefect_harness, part_lib, tmp_path, monkeypatch):
     """A part stuck in a stage (here: extraction blocked until the test ends) becomes a failed row
     naming the limit and the stage once it has run ``part_timeout`` seconds; the other part meshes."""
