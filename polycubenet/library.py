@@ -43,7 +43,7 @@ from .atomic import load_npz, save_npz, write_json, write_text
 from .data import HexMesh, Part, Polycube, PolycubeCloud, SurfaceSample
 from .errors import PolycubeError
 from .pipeline import OracleSource, PartResult, PipelineConfig
-from .policy import draw_anchors, draw_seed, draw_steps, draw_turn, extraction_config, refinement, source_config
+from .policy import draw_anchors, draw_seed, draw_steps, draw_turn, extraction_config, refinement, source_config, under_bar
 
 #: part files the library reads (``polycubenet.io.load_part``)
 CAD_SUFFIXES = (".step", ".stp", ".iges", ".igs")
@@ -678,10 +678,9 @@ def quality_bar(manifest: dict) -> float | None:
 
 
 def under_quality_bar(summary: dict, min_sj: float | None) -> bool:
-    """Whether a :func:`summary_rows` row is a part meshed valid but under the quality bar ``min_sj`` (never
-    with ``min_sj`` None)."""
-    return (min_sj is not None and summary["status"] == "meshed" and summary["valid"]
-            and summary["sj_min"] is not None and summary["sj_min"] < min_sj)
+    """Whether a :func:`summary_rows` row is a part meshed valid but under the quality bar ``min_sj``
+    (:func:`polycubenet.policy.under_bar`; never with ``min_sj`` None)."""
+    return summary["status"] == "meshed" and summary["valid"] and under_bar(summary, min_sj)
 
 
 def write_report_html(out: str | os.PathLike, rows: list[dict], *, title: str = "PolycubeNet meshing report",
