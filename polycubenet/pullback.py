@@ -245,9 +245,9 @@ class PullbackConfig:
         ``final_coverage_sj``: a mesh off the part fails, one at 0.22 is above the quality bar (0.2).
     ease_spots : bool
         Step 7 (:func:`ease_poor_hexes`): a mesh that is not valid, or valid under ``ease_below``, with at most
-        ``ease_max_hexes`` hexes under ``ease_below + ease_margin``, is untangled once more around those hexes with the boundary
-        nodes there allowed up to ``ease_slack`` off the part's surface; kept only when it is then valid (and,
-        if it was valid before, better and no farther off the part than the bar or than before).
+        ``ease_max_hexes`` hexes under ``ease_below + ease_margin``, is untangled once more around those hexes
+        with the boundary nodes there allowed up to ``ease_slack`` off the part's surface; kept only when it is
+        then valid (and, if it was valid before, better and no farther off the part than the bar or than before).
     ease_below : float
         A valid mesh whose minimum SJ is at least this is left as it is.  Inside the pipeline it is the
         pipeline's quality bar (``PipelineConfig`` sets it from ``min_sj`` when that is not None); this default
