@@ -691,12 +691,13 @@ def write_report_html(out: str | os.PathLike, rows: list[dict], *, title: str = 
     out = Path(out)
     esc = html.escape
     n_ok = sum(r["status"] == "meshed" for r in rows)
-    n_under = sum(under_quality_bar(s, min_sj) for s in summary_rows(rows))
+    summary = summary_rows(rows)
+    n_under = sum(under_quality_bar(s, min_sj) for s in summary)
     under = f" {n_under} meshed under the quality bar (SJ min < {min_sj:g})." if n_under else ""
     head = ("<th>part</th><th>status</th><th>stage</th><th>polycube</th><th>hexes</th><th>SJ min</th><th>SJ avg</th>"
             "<th>Hausdorff %</th><th>valid</th><th>time s</th><th>error</th>")
     body = []
-    for s in summary_rows(rows):
+    for s in summary:
         good = s["status"] == "meshed" and s["valid"] and not under_quality_bar(s, min_sj)
         cls = "ok" if good else ("warn" if s["status"] == "meshed" else "bad")
         body.append(

@@ -1842,10 +1842,10 @@ def ease_poor_hexes(mesh: HexMesh, V: np.ndarray, F: np.ndarray, config: Pullbac
     edge maps to, the pull-back holds every surface node on the surface, and a handful of hexes at the edge stay
     inverted or flat.  Here the nodes of the hexes under ``config.ease_below + config.ease_margin`` and of
     ``config.ease_rings`` rings around them move again (:func:`optimise_quality`), the surface nodes among them kept
-    within ``config.ease_slack`` of the surface instead of on it.  The result is kept only when it is valid and, for a mesh that was valid already, has
-    a higher minimum SJ and stays within ``max(bar, distance before)`` of the part
-    (:data:`polycubenet.tol.HAUSDORFF_REL_MAX`; a farther one gets its spots mended first, :func:`mend_spots`, when
-    ``config.capture_spots``); a mesh with more than ``config.ease_max_hexes`` poor hexes (a folded map, not a
+    within ``config.ease_slack`` of the surface instead of on it.  The result is kept only when it is valid and, for
+    a mesh that was valid already, has a higher minimum SJ and stays within ``max(bar, distance before)`` of the
+    part (:data:`polycubenet.tol.HAUSDORFF_REL_MAX`; a farther one gets its spots mended first, :func:`mend_spots`,
+    when ``config.capture_spots``); a mesh with more than ``config.ease_max_hexes`` poor hexes (a folded map, not a
     spot) is left as it is.  ``meta["eased"]`` says what was tried: the hexes eased, the nodes free to move, the
     surface nodes moved and how far the farthest of them was left off the surface (relative to the diagonal), the
     minimum SJ and the distance before and after, and whether the result was kept.
