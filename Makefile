@@ -7,7 +7,7 @@ OUT ?= out/demo
 
 .PHONY: setup test demo examples synth-preview bench clean
 
-$(STAMP): pyproject.toml scripts/setup.sh
+$(STAMP): pyproject.toml constraints.txt scripts/setup.sh
 	VENV=$(VENV) scripts/setup.sh
 	touch $(STAMP)
 

@@ -28,5 +28,7 @@ fi
 "$VENV/bin/python" -m pip install -q --upgrade pip 2>&1 | grep -v "^WARNING: Location" || true
 # torch first and exactly pinned: the CPU wheel on disk; anything else would fetch CUDA packages
 "$VENV/bin/python" -m pip install -q "torch==2.13.0" 2>&1 | grep -v "^WARNING: Location" || true
-"$VENV/bin/python" -m pip install -q -e ".[dev]" 2>&1 | grep -v "^WARNING: Location" || true
+# every other package at the exact version the project was last tested with (constraints.txt), so a fresh
+# machine meshes a part as this one does; pyproject.toml keeps the ranges the code supports
+"$VENV/bin/python" -m pip install -q -c constraints.txt -e ".[dev]" 2>&1 | grep -v "^WARNING: Location" || true
 "$VENV/bin/python" -c "import torch, open3d, gmsh, trimesh, meshio, pyvista, prefect, dask; print('[setup] ok: torch', torch.__version__, '| prefect', prefect.__version__)"
