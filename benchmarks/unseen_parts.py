@@ -1,6 +1,6 @@
 """Parts the project has never seen: how often is the learned polycube accepted on them?
 
-    python benchmarks/unseen_parts.py [--count 16] [--seed 7] [--family blocks|mixed|machined|finished] [--mesh] [--anchors even] \\
+    python benchmarks/unseen_parts.py [--count 16] [--seed 7] [--family blocks|mixed|machined|finished|profiles|turned] [--mesh] [--anchors even] \\
         [--draws default] [--json benchmarks/results/unseen_parts.json]
     python benchmarks/unseen_parts.py --count 16 --seed 61 --family mixed --make-only DIR   # the STEP files only
 
@@ -45,8 +45,11 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 #: edges where it crosses a hole, pocket or slot near the end).  ``finished`` is exactly the ``machined`` part,
 #: then finished as CAD parts usually are: 1-4 of its straight edges rounded by a fillet and 0-2 chamfered
 #: (:func:`finish_edges`, from random numbers drawn after all of ``machined``'s), the treatment every example
-#: part has and no other family does.
-FAMILIES = ("blocks", "mixed", "machined", "finished")
+#: part has and no other family does.  ``profiles`` and ``turned`` leave the block generator altogether and draw
+#: the kinds of part the examples are (:func:`build_profile`, :func:`build_turned`): extruded L, T, U, Z and stair
+#: sections with holes through their legs and sometimes a mitred end; shafts, bushings and flanges with bores,
+#: bolt circles, cross holes, flats and keyways.
+FAMILIES = ("blocks", "mixed", "machined", "finished", "profiles", "turned")
 
 
 def build_part(occ, rng: np.random.Generator, family: str = "blocks") -> str:
@@ -55,6 +58,14 @@ def build_part(occ, rng: np.random.Generator, family: str = "blocks") -> str:
     (:data:`FAMILIES`)."""
     if family not in FAMILIES:
         raise ValueError(f"family must be one of {FAMILIES}; got {family!r}")
+    if family in ("profiles", "turned"):
+        what = (build_profile if family == "profiles" else build_turned)(occ, rng)
+        axis = rng.normal(size=3)
+        occ.rotate(occ.getEntities(3), 0, 0, 0, *axis, rng.uniform(0, np.pi))
+        occ.synchronize()
+        if len(occ.getEntities(3)) != 1:
+            raise RuntimeError(f"{len(occ.getEntities(3))} volumes")
+        return ", ".join(what + ["rotated"])
     curved = family in ("mixed", "machined", "finished")
     L, W, H = rng.uniform(40, 90), rng.uniform(25, 60), rng.uniform(12, 30)
     base = occ.addBox(0, 0, 0, L, W, H)
@@ -115,6 +126,129 @@ def build_part(occ, rng: np.random.Generator, family: str = "blocks") -> str:
     if len(vols) != 1:
         raise RuntimeError(f"{len(vols)} volumes")
     return ", ".join(what)
+
+
+def _free_span(leg: tuple, others: list[tuple], axis: int) -> tuple[float, float]:
+    """The longest stretch of the section box ``leg`` = (x, y, w, h) along ``axis`` (0: x, 1: y) that no box of
+    ``others`` covers: where a hole through the leg meets no other leg."""
+    lo, hi = leg[axis], leg[axis] + leg[2 + axis]
+    cuts = sorted((o[axis], o[axis] + o[2 + axis]) for o in others
+                  if o[1 - axis] < leg[1 - axis] + leg[3 - axis] and leg[1 - axis] < o[1 - axis] + o[3 - axis])
+    best, start = (lo, lo), lo
+    for a, b in cuts + [(hi, hi)]:
+        if min(a, hi) - start > best[1] - best[0]:
+            best = (start, min(a, hi))
+        start = max(start, b)
+    return best
+
+
+def build_profile(occ, rng: np.random.Generator) -> list[str]:
+    """An extruded profile (:data:`FAMILIES`): an L, T, U, Z or stair section of legs 15-35 % of the section
+    thick, 40-120 long, with 0-3 round or square holes through its legs (each where no other leg meets it) and
+    sometimes one end mitred at 20-40 degrees."""
+    kind = str(rng.choice(["L", "T", "U", "Z", "stair"]))
+    a, b, length = rng.uniform(25, 60), rng.uniform(20, 50), rng.uniform(40, 120)
+    t1, t2 = rng.uniform(0.15, 0.35) * b, rng.uniform(0.15, 0.35) * a  # flange (along y), web (along x)
+    if kind == "L":
+        legs = [(0, 0, a, t1), (0, 0, t2, b)]
+    elif kind == "T":
+        legs = [(0, b - t1, a, t1), ((a - t2) / 2, 0, t2, b)]
+    elif kind == "U":
+        legs = [(0, 0, a, t1), (0, 0, t2, b), (a - t2, 0, t2, b)]
+    elif kind == "Z":
+        legs = [(0, 0, (a + t2) / 2, t1), ((a - t2) / 2, 0, t2, b), ((a - t2) / 2, b - t1, (a + t2) / 2, t1)]
+    else:
+        n = int(rng.integers(2, 4))
+        legs = [(0, 0, a * (n - i) / n, b * (i + 1) / n) for i in range(n)]
+    what = [f"{kind} profile {a:.0f}x{b:.0f}x{length:.0f}"]
+    solid = [(3, occ.addBox(x, y, 0, w, h, length)) for x, y, w, h in legs]
+    if len(solid) > 1:
+        solid, _ = occ.fuse(solid[:1], solid[1:])
+    tools, holes = [], []
+    for _ in range(rng.integers(0, 4)):
+        k = int(rng.integers(len(legs)))
+        x, y, w, h = legs[k]
+        along = 0 if w >= h else 1  # the leg's long side in the section; the hole goes through its thickness
+        lo, hi = _free_span(legs[k], legs[:k] + legs[k + 1:], along)
+        r = rng.uniform(0.15, 0.35) * min(hi - lo, length)
+        if hi - lo < 2 * r + 4 or r < 1.5:
+            continue
+        c, z = rng.uniform(lo + r + 2, hi - r - 2), rng.uniform(r + 3, length - r - 3)
+        if any(k == k2 and np.hypot(c - c2, z - z2) < 1.5 * (r + r2) + 2 for k2, c2, z2, r2 in holes):
+            continue  # it would run into a hole already drilled in this leg: one hole each, as described
+        holes.append((k, c, z, r))
+        depth = (h, w)[along] + 10
+        start = [0.0, 0.0]
+        start[along], start[1 - along] = c, (y, x)[along] - 5
+        d = [0.0, 0.0, 0.0]
+        d[1 - along] = depth
+        if rng.random() < 0.6:
+            tools.append((3, occ.addCylinder(start[0], start[1], z, *d, r)))
+            what.append("round hole")
+        else:
+            corner = [start[0] - r * (along == 0), start[1] - r * (along == 1), z - r]
+            size = [2 * r if along == 0 else depth, 2 * r if along == 1 else depth, 2 * r]
+            tools.append((3, occ.addBox(*corner, *size)))
+            what.append("square hole")
+    if rng.random() < 0.3:  # one end mitred: the half-space beyond a plane through the end, tilted about y
+        ang = rng.uniform(20, 40)
+        cut = occ.addBox(-4 * a, -4 * b, length, 8 * a, 8 * b, 4 * length)
+        occ.rotate([(3, cut)], a / 2, 0, length, 0, 1, 0, np.radians(ang))
+        occ.translate([(3, cut)], 0, 0, -0.5 * a * np.tan(np.radians(ang)) - 2)
+        tools.append((3, cut))
+        what.append(f"mitred end {ang:.0f} deg")
+    if tools:
+        solid, _ = occ.cut(solid, tools)
+    occ.synchronize()
+    return what
+
+
+def build_turned(occ, rng: np.random.Generator) -> list[str]:
+    """A turned part (:data:`FAMILIES`): 2-4 coaxial steps (radius 8-30, length 6-35), sometimes a flange disc
+    at one end with 3-6 bolt holes, a through bore, a cross hole through one step, a flat milled on one step
+    or a keyway cut along one."""
+    n = int(rng.integers(2, 5))
+    radii, lengths = rng.uniform(8, 30, n), rng.uniform(6, 35, n)
+    z0 = np.concatenate([[0.0], np.cumsum(lengths)])
+    solid = [(3, occ.addCylinder(0, 0, z0[i], 0, 0, lengths[i], radii[i])) for i in range(n)]
+    solid, _ = occ.fuse(solid[:1], solid[1:])
+    what = [f"shaft of {n} steps, radius {radii.min():.0f}-{radii.max():.0f}, length {z0[-1]:.0f}"]
+    tools = []
+    bore = rng.uniform(0.3, 0.6) * radii.min() if rng.random() < 0.5 else 0.0
+    if rng.random() < 0.35:  # a flange at the start, with a bolt circle
+        big = radii.max() * rng.uniform(1.5, 2.1)
+        thick = rng.uniform(4, 10)
+        solid, _ = occ.fuse(solid, [(3, occ.addCylinder(0, 0, -thick + 1e-3, 0, 0, thick, big))])
+        k = int(rng.integers(3, 7))
+        rc = 0.5 * (big + radii[0])
+        rb = min(0.3 * (big - radii[0]), 0.6 * np.pi * rc / k)
+        if rb >= 1.5:
+            for j in range(k):
+                phi = 2 * np.pi * j / k
+                tools.append((3, occ.addCylinder(rc * np.cos(phi), rc * np.sin(phi), -thick - 5, 0, 0, thick + 10, rb)))
+            what.append(f"flange radius {big:.0f} with {k} bolt holes")
+        else:
+            what.append(f"flange radius {big:.0f}")
+    if bore:
+        tools.append((3, occ.addCylinder(0, 0, -20, 0, 0, z0[-1] + 40, bore)))
+        what.append(f"bore radius {bore:.0f}")
+    i = int(rng.integers(n))
+    if rng.random() < 0.3 and lengths[i] > 10:  # a cross hole through step i
+        rx = rng.uniform(0.15, 0.3) * min(radii[i], lengths[i])
+        tools.append((3, occ.addCylinder(-2 * radii.max() - 5, 0, z0[i] + lengths[i] / 2, 4 * radii.max() + 10, 0, 0, rx)))
+        what.append("cross hole")
+    elif rng.random() < 0.3:  # a flat milled on step i, over its whole length
+        d = rng.uniform(0.6, 0.85) * radii[i]
+        tools.append((3, occ.addBox(d, -radii[i] - 1, z0[i], radii[i], 2 * radii[i] + 2, lengths[i])))
+        what.append("flat")
+    elif rng.random() < 0.3 and lengths[i] > 12:  # a keyway along step i
+        w = 0.3 * radii[i]
+        tools.append((3, occ.addBox(-w / 2, radii[i] - 0.25 * radii[i], z0[i] + 0.2 * lengths[i], w, radii[i], 0.6 * lengths[i])))
+        what.append("keyway")
+    if tools:
+        solid, _ = occ.cut(solid, tools)
+    occ.synchronize()
+    return what
 
 
 def finish_edges(occ, rng: np.random.Generator, size: float) -> list[str]:
@@ -340,7 +474,8 @@ def main(argv=None) -> int:
                     help="blocks: axis-aligned steps, bosses, holes, pockets, slots; mixed: also round bosses, "
                          "slanted cuts (with a knife-edge notch) and a random rotation; machined: the mixed parts "
                          "with each slanted end a plain plane cut; finished: the machined parts with 1-4 edges "
-                         "filleted and 0-2 chamfered")
+                         "filleted and 0-2 chamfered; profiles: extruded L/T/U/Z/stair sections with holes; turned: "
+                         "shafts, bushings and flanges")
     ap.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT))
     ap.add_argument("--steps", type=int, default=None,
                     help="DDIM steps (default: the checkpoint's own default_steps, as mesh_part uses)")

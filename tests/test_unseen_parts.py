@@ -93,3 +93,24 @@ def test_finished_parts_are_the_machined_ones_with_rounded_and_chamfered_edges()
     assert desc_f.startswith(desc_c + ", fillet")  # the same part, then finished
     assert set(types_c) == {"Plane"}  # a block with a slanted end: planes only
     assert len(types_f) > len(types_c) and set(types_f) - {"Plane"}  # a fillet's round face (a chamfer adds a plane)
+
+
+def _genus(path: Path) -> int:
+    from polycubenet.io import load_part
+
+    return int(load_part(path).meta["genus"])
+
+
+def test_every_hole_through_a_profile_or_a_turned_part_is_a_tunnel(tmp_path):
+    """The two families drawn like the examples: a profile's holes go through its legs (one tunnel each); a
+    turned part's bolt holes and its bore are one tunnel each, and a cross hole two where it crosses the bore."""
+    for seed in [(5, 6), (5, 8), (5, 12)]:  # an L with 3 round holes, a U and a stair with 2 holes each, no mitre
+        path, desc = _build(tmp_path, "profiles", seed)
+        holes = desc.count(" hole")
+        assert holes >= 2 and _genus(path) == holes, desc
+    for seed in [(5, 3), (5, 13)]:  # 5 bolt holes and a bore; a bore crossed by a cross hole
+        path, desc = _build(tmp_path, "turned", seed)
+        bolts = int(desc.split(" bolt holes")[0].rsplit(" ", 1)[1]) if "bolt holes" in desc else 0
+        bore = "bore" in desc
+        cross = (2 if bore else 1) * ("cross hole" in desc)
+        assert _genus(path) == bolts + bore + cross > 0, desc
