@@ -129,12 +129,12 @@ SHAPES = ("no slanted end", "slanted end, no round hole", "slanted end and round
 
 def shape_class(desc: str | None) -> str | None:
     """The class of a never-seen part by the features its description (``unseen_parts.py``'s ``shape``) names:
-    whether it has a slanted end, and with it a round through-hole (the combination the model fails most);
-    None without a description (the examples)."""
+    whether it has a slanted end (a profile's mitred end is one), and with it a round through-hole (the
+    combination the model fails most); None without a description (the examples)."""
     if not desc:
         return None
     feats = [f.strip() for f in desc.split(",")]
-    if not any(f.startswith("slanted end") for f in feats):
+    if not any(f.startswith(("slanted end", "mitred end")) for f in feats):
         return SHAPES[0]
     return SHAPES[2] if "round hole" in feats else SHAPES[1]
 

@@ -71,6 +71,8 @@ def test_parts_are_split_by_the_features_their_descriptions_name(tmp_path, capsy
         "slanted end, no round hole"
     assert unseen_losses.shape_class("block 56x33x15, round hole, square hole, slanted end 21 deg") == \
         "slanted end and round hole"
+    assert unseen_losses.shape_class("U profile 55x39x102, round hole, mitred end 34 deg, rotated") == \
+        "slanted end and round hole"
     rows = [{"part": "kept", "accepted": True, "shape": "block, pocket, rotated"},
             {"part": "no polycube", "accepted": False, "shape": "block, round hole, slanted end 30 deg"},
             {"part": "off", "accepted": True, "shape": "block, slanted end 40 deg, rotated"},
