@@ -546,3 +546,64 @@ def test_occupancy_problems_read_as_plain_sentences():
     assert check_occupancy(edge) == "non-manifold: 2 edge-only contact(s), first along axis 2 at vertex (1, 1, 0)"
     assert check_occupancy(corner) == "non-manifold: 1 vertex-only contact(s), first at vertex (1, 1, 1)"
     assert check_occupancy(apart) == "disconnected: 2 solid components"
+
+
+def test_turned_polycubes_are_coaxial_squares_and_valid():
+    """A turned part's polycube: valid, its grid across the axis symmetric about it (every square step, the bore
+    and the bolt circle centred on the axis, so one radial map rounds them all), the body recorded as a feature."""
+    from polycubenet.synth.polycube import turned_polycube
+
+    genera = set()
+    for s in range(30):
+        pc = turned_polycube(np.random.default_rng([51, s]))
+        assert check_occupancy(pc.occupancy) is None and pc.style == "turned"
+        body = [f for f in pc.features if f.kind == "turned"]
+        assert len(body) == 1
+        for a in range(3):
+            if a != body[0].axis:
+                c = pc.grid[a]
+                np.testing.assert_allclose(c, -c[::-1], atol=1e-12)
+        genera.add(pc.genus)
+    assert {0, 1, 4} <= genera  # a plain shaft, a bore (or a cross hole), a flange's four bolt holes
+
+
+def _radial_share(P: np.ndarray, N: np.ndarray, deg: float = 15.0) -> float:
+    """Of the points whose normal is across an axis through the origin, the share whose normal points along
+    the radius from that axis (within ``deg``; the best of the three axes): about 1 on coaxial cylinders."""
+    best = 0.0
+    for a in range(3):
+        u = [i for i in range(3) if i != a]
+        side = np.abs(N[:, a]) < 0.1
+        r, n = P[side][:, u], N[side][:, u]
+        rn = np.linalg.norm(r, axis=1)
+        k = rn > 0.02
+        cos = np.abs((r[k] * n[k]).sum(1)) / (rn[k] * np.linalg.norm(n[k], axis=1))
+        best = max(best, float((cos > np.cos(np.radians(deg))).mean()))
+    return best
+
+
+def test_turned_pairs_are_round_where_their_polycubes_are_square():
+    """``turned``: the part's side walls are coaxial cylinders (normals along the radius) where its target
+    polycube's are square (a third of the points, near the face centres) and other pairs' are not; off, a seed
+    gives exactly the pair it gave before."""
+    for s in (3, 5, 8):
+        pair = make_pair(s, n_cond=600, n_target=600, turned=1.0)
+        assert pair.meta["style"] == "turned"
+        assert _radial_share(pair.cond.points, pair.cond.normals) > 0.75, s
+        assert _radial_share(pair.target.points, pair.target.normals) < 0.45, s
+        assert (np.abs(pair.target.normals).max(axis=1) > 0.999).all()
+        other = make_pair(s, n_cond=600, n_target=600)
+        assert other.meta["style"] != "turned" and _radial_share(other.cond.points, other.cond.normals) < 0.45
+    a, b = make_pair(5, n_cond=100, n_target=100), make_pair(5, n_cond=100, n_target=100, turned=0.0)
+    assert np.array_equal(a.cond.points, b.cond.points)
+
+
+def test_turned_share_is_recorded_and_regenerated(tmp_path):
+    rc = synth_main(["--out", str(tmp_path), "--count", "2", "--seed", "6", "--per-shard", "2", "--n-cond", "40",
+                     "--n-target", "40", "--turned", "1", "--no-progress"])
+    assert rc == 0
+    assert json.loads((tmp_path / "dataset.json").read_text())["params"]["turned"] == 1.0
+    shard = load_shard(tmp_path / "shard-00000.npz")
+    for k, rec in enumerate(shard):
+        again = shard.regenerate(k)
+        assert np.array_equal(rec["polycube"].occupancy, again.polycube.occupancy)

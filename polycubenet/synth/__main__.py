@@ -45,6 +45,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cut-slants", action="store_true",
                    help="with --whole-slants: each slanted end a plane cut that leaves the walls near it straight, "
                         "placed away from holes and steps (see make_pair)")
+    p.add_argument("--turned", type=float, default=0.0, metavar="P",
+                   help="the share P of pairs that are turned parts (shafts, bushings, flanges: coaxial steps rounded "
+                        "about their axis, bores, bolt circles, cross holes; default 0; see make_pair)")
     p.add_argument("--overwrite", action="store_true", help="regenerate existing shards / replace another dataset")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -59,7 +62,8 @@ def main(argv: list[str] | None = None) -> int:
             n_target=args.n_target, workers=args.workers, sampler=args.sampler,
             edge_length=args.edge_length, full=args.full, overwrite=args.overwrite, cad_features=args.cad_features,
             whole_slants=args.whole_slants, max_strength=args.max_strength, tall_bosses=args.tall_bosses,
-            full_slants=args.full_slants, cut_slants=args.cut_slants, progress=not args.no_progress,
+            full_slants=args.full_slants, cut_slants=args.cut_slants, turned=args.turned,
+            progress=not args.no_progress,
         )
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -39,9 +39,10 @@ from ..atomic import load_npz, save_npz
 from ..data import Polycube, SurfaceSample
 from ..frame import Transform, canonicalize, face_normals_areas
 from ..sampling import interpolate, poisson_disk, uniform_sample
-from .deform import DeformationMap, check_invertible, empty_cells, random_deformation
+from .deform import DeformationMap, RoundHole, check_invertible, empty_cells, random_deformation
 from ..tol import AREA_REL
-from .polycube import convex_edges, polycube_quads, random_polycube, surface_genus, transform_grid, triangulate_quads
+from .polycube import (convex_edges, polycube_quads, random_polycube, surface_genus, transform_grid, triangulate_quads,
+                       turned_polycube)
 
 #: default target edge length of the refined surfaces (generator frame, diagonal 1)
 EDGE_LENGTH = 0.02
@@ -218,6 +219,7 @@ def make_pair(
     tall_bosses: bool = False,
     full_slants: float = 0.0,
     cut_slants: bool = False,
+    turned: float = 0.0,
 ) -> SynthPair:
     """Generate one pair from ``seed`` (see the module docstring for the steps).
 
@@ -248,6 +250,12 @@ def make_pair(
     cut_slants : bool, with ``whole_slants``: each cut a plane cut that leaves the part's other faces where they
         are (``random_deformation(cut_ends=True)``, placed away from the polycube's empty cells) instead of a
         smooth fade that shears the walls near it.  Off, a seed gives the pair it gave before.
+    turned : float in [0, 1], the share of pairs that are turned parts: the polycube of coaxial square steps of
+        :func:`~polycubenet.synth.polycube.turned_polycube`, its bolt and cross holes rounded, the fillets and
+        chamfers of its shoulders, no global map or slant, then every square about the axis rounded into a
+        circle by one radial map (:class:`~polycubenet.synth.deform.RoundHole` about the axis, fading nowhere):
+        shafts, bushings and flanges, which the other pairs never show whole.  0: a seed gives the pair it gave
+        before.
 
     Returns
     -------
@@ -262,7 +270,11 @@ def make_pair(
     timings = {"polycube": 0.0, "deformation": 0.0, "frame": 0.0, "sampling": 0.0}
     for attempt in range(1, max_attempts + 1):
         t0 = time.perf_counter()
-        pc = random_polycube(rng, style=style, n_holes=n_holes, tall_bosses=tall_bosses)
+        if turned > 0 and rng.random() < turned:
+            pc = turned_polycube(rng)
+        else:
+            pc = random_polycube(rng, style=style, n_holes=n_holes, tall_bosses=tall_bosses)
+        body = next((f for f in pc.features if f.kind == "turned"), None)
         V0, Q = polycube_quads(pc.xs, pc.ys, pc.zs, pc.occupancy, h=edge_length)
         lo, hi = pc.bounds
         rounded = ("through_hole", "pocket", "boss") if cad_features else ("through_hole", "pocket")
@@ -270,10 +282,17 @@ def make_pair(
         t1 = time.perf_counter()
         timings["polycube"] += t1 - t0
         edges = convex_edges(pc.xs, pc.ys, pc.zs, pc.occupancy)
-        dmap = random_deformation(rng, lo, hi, holes, edges, strength=strength, slanted_ends=cad_features,
-                                   whole_ends=whole_slants, max_strength=max_strength, full_ends=full_slants,
-                                   cut_ends=cut_slants,
-                                   keep_out=empty_cells(pc.xs, pc.ys, pc.zs, pc.occupancy) if cut_slants else ())
+        if body is not None:  # the shoulders' fillets and chamfers, not the edges along the axis (rounded next)
+            edges = [e for e in edges if int(e["axis"]) != body.axis]
+            dmap = random_deformation(rng, lo, hi, holes, edges, strength=0.0)
+            dmap.maps.append(RoundHole(body.axis, 0.5 * (body.lo + body.hi), np.ones(2),
+                                       float(rng.choice([16.0, 64.0], p=[0.25, 0.75])), float(rng.uniform(0.85, 1.0)),
+                                       1e6))
+        else:
+            dmap = random_deformation(rng, lo, hi, holes, edges, strength=strength, slanted_ends=cad_features,
+                                       whole_ends=whole_slants, max_strength=max_strength, full_ends=full_slants,
+                                       cut_ends=cut_slants,
+                                       keep_out=empty_cells(pc.xs, pc.ys, pc.zs, pc.occupancy) if cut_slants else ())
         ok, min_det = check_invertible(dmap, lo, hi, rng, extra=V0)
         timings["deformation"] += time.perf_counter() - t1
         if not ok:

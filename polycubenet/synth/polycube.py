@@ -400,3 +400,86 @@ def _random_polycube_once(
         fhi_c = np.array([(coords[a][fhi[a]] - center[a]) / diag for a in range(3)])
         features.append(Feature(kind, int(axis), flo_c, fhi_c))
     return RandomPolycube(norm[0], norm[1], norm[2], cocc, solid_genus(cocc), style, features)
+
+
+def turned_polycube(rng: np.random.Generator, *, min_width: float = MIN_WIDTH, max_tries: int = 50) -> RandomPolycube:
+    """The polycube of a turned part (style ``turned``): what a shaft, a bushing or a flange is rounded from.
+
+    2-4 coaxial steps of square section along a random axis (half sides 0.35-1, lengths 0.3-1.6, in lattice
+    units), sometimes a thin flange at one end (half side 1.4-2 times the widest step) with four bolt holes on
+    the two cross axes, a square bore along the axis, a square cross hole through one step.  Every square is
+    centred on the axis, so one radial map about it (:func:`polycubenet.synth.pairs.make_pair` with ``turned``)
+    rounds all of them at once into coaxial cylinders and the bore into a round bore; the bolt holes and the
+    cross hole are :class:`Feature` ``through_hole`` for the hole rounding.  A draw with a grid interval thinner
+    than ``min_width`` of the diagonal or an invalid occupancy is drawn again (widening intervals would move
+    the squares off the axis).  The random stream of :func:`random_polycube` does not change.
+
+    Returns
+    -------
+    RandomPolycube, normalized (bounding box centred at 0, diagonal 1), ``style == "turned"``
+    """
+    for _ in range(max_tries):
+        pc = _turned_once(rng, min_width)
+        if pc is not None:
+            return pc
+    raise RuntimeError("turned_polycube: no valid polycube")  # pragma: no cover - never seen
+
+
+def _turned_once(rng: np.random.Generator, min_width: float) -> RandomPolycube | None:
+    axis = int(rng.integers(3))
+    n = int(rng.integers(2, 5))
+    half, length = rng.uniform(0.35, 1.0, n), rng.uniform(0.3, 1.6, n)
+    flange = int(rng.choice([0, n - 1])) if rng.random() < 0.35 else None
+    if flange is not None:
+        half[flange] = rng.uniform(1.4, 2.0) * np.delete(half, flange).max()
+        length[flange] = rng.uniform(0.15, 0.4)
+    bore = rng.uniform(0.25, 0.6) * half.min() if rng.random() < 0.5 else 0.0
+    ends = np.concatenate([[0.0], np.cumsum(length)])
+    bolts, hb = [], 0.0
+    if flange is not None and rng.random() < 0.7:
+        inner = np.delete(half, flange).max()
+        rb, hb = 0.5 * (half[flange] + inner), rng.uniform(0.15, 0.3) * (half[flange] - inner)
+        bolts = [(rb, 0.0), (-rb, 0.0), (0.0, rb), (0.0, -rb)]
+    cross, hc, mid = None, 0.0, 0.0
+    if rng.random() < 0.3:
+        cross = int(rng.integers(n))
+        hc = rng.uniform(0.15, 0.3) * min(half[cross], 0.5 * length[cross])
+        mid = 0.5 * (ends[cross] + ends[cross + 1])
+    # the lattice: along the axis the step ends (and the cross hole's sides), across it every square's sides
+    a_lines = np.unique(np.concatenate([ends, [mid - hc, mid + hc] if cross is not None else []]))
+    c_vals = [*half, bore] + [abs(c) + s * hb for c, _ in bolts for s in (-1, 1)] + [hc]
+    c_lines = np.unique(np.round(np.concatenate([[v, -v] for v in c_vals if v > 0]), 12))
+    ac, cc = 0.5 * (a_lines[1:] + a_lines[:-1]), 0.5 * (c_lines[1:] + c_lines[:-1])
+    A, U, V = np.meshgrid(ac, cc, cc, indexing="ij")
+    step = np.clip(np.searchsorted(ends, A) - 1, 0, n - 1)
+    occ = np.maximum(np.abs(U), np.abs(V)) < half[step]
+    occ &= ~(np.maximum(np.abs(U), np.abs(V)) < bore)
+    for cu, cv in bolts:
+        occ &= ~((step == flange) & (np.abs(U - cu) < hb) & (np.abs(V - cv) < hb))
+    if cross is not None:
+        occ &= ~((np.abs(A - mid) < hc) & (np.abs(V) < hc))  # through along the first cross axis
+    coords = [None, None, None]
+    u_ax, v_ax = (axis + 1) % 3, (axis + 2) % 3
+    coords[axis], coords[u_ax], coords[v_ax] = a_lines, c_lines, c_lines
+    occ = np.moveaxis(occ, (0, 1, 2), (axis, u_ax, v_ax))
+    diag = float(np.linalg.norm([c[-1] - c[0] for c in coords]))
+    if min(np.diff(c).min() for c in coords) < min_width * diag or check_occupancy(occ) is not None:
+        return None
+    (cx, cy, cz), cocc = compress(coords, occ)
+    center = np.array([0.5 * (c[0] + c[-1]) for c in (cx, cy, cz)])
+    norm = [(c - center[a]) / diag for a, c in enumerate((cx, cy, cz))]
+
+    def box(lo_d: dict, hi_d: dict) -> tuple[np.ndarray, np.ndarray]:
+        lo = np.array([(lo_d[a] - center[a]) / diag for a in range(3)])
+        hi = np.array([(hi_d[a] - center[a]) / diag for a in range(3)])
+        return lo, hi
+
+    features = [Feature("turned", axis, *box({axis: ends[0], u_ax: -half.max(), v_ax: -half.max()},
+                                             {axis: ends[-1], u_ax: half.max(), v_ax: half.max()}))]
+    for cu, cv in bolts:
+        features.append(Feature("through_hole", axis, *box({axis: ends[flange], u_ax: cu - hb, v_ax: cv - hb},
+                                                          {axis: ends[flange + 1], u_ax: cu + hb, v_ax: cv + hb})))
+    if cross is not None:
+        features.append(Feature("through_hole", u_ax, *box({axis: mid - hc, u_ax: -half[cross], v_ax: -hc},
+                                                         {axis: mid + hc, u_ax: half[cross], v_ax: hc})))
+    return RandomPolycube(norm[0], norm[1], norm[2], cocc, solid_genus(cocc), "turned", features)

@@ -82,6 +82,7 @@ class ShardParams:
     tall_bosses: bool = False
     full_slants: float = 0.0
     cut_slants: bool = False
+    turned: float = 0.0
 
 
 def pair_record(pair: SynthPair, index: int, full: bool = False) -> dict:
@@ -285,7 +286,8 @@ def _generate(seed: int, params: ShardParams) -> SynthPair:
     return make_pair(seed, n_cond=params.n_cond, n_target=params.n_target, sampler=params.sampler,
                      edge_length=params.edge_length, cad_features=params.cad_features,
                      whole_slants=params.whole_slants, max_strength=params.max_strength,
-                     tall_bosses=params.tall_bosses, full_slants=params.full_slants, cut_slants=params.cut_slants)
+                     tall_bosses=params.tall_bosses, full_slants=params.full_slants, cut_slants=params.cut_slants,
+                     turned=params.turned)
 
 
 def _make_record(task: tuple[int, int, ShardParams]) -> dict:
@@ -322,6 +324,7 @@ def write_dataset(
     tall_bosses: bool = False,
     full_slants: float = 0.0,
     cut_slants: bool = False,
+    turned: float = 0.0,
 ) -> list[Path]:
     """Generate ``count`` pairs into ``out/shard-*.npz`` plus ``out/dataset.json``.
 
@@ -348,6 +351,7 @@ def write_dataset(
     tall_bosses : bool, more and taller bosses (:func:`~polycubenet.synth.pairs.make_pair`)
     full_slants : float, the share of whole-end slants across the whole end (:func:`~polycubenet.synth.pairs.make_pair`)
     cut_slants : bool, whole-end slants as plane cuts that shear nothing near them (:func:`~polycubenet.synth.pairs.make_pair`)
+    turned : float, the share of turned parts: shafts, bushings, flanges (:func:`~polycubenet.synth.pairs.make_pair`)
 
     Returns
     -------
@@ -361,7 +365,7 @@ def write_dataset(
     out.mkdir(parents=True, exist_ok=True)
     params = ShardParams(int(n_cond), int(n_target), str(sampler), float(edge_length), bool(full), bool(cad_features),
                          bool(whole_slants), None if max_strength is None else float(max_strength),
-                         bool(tall_bosses), float(full_slants), bool(cut_slants))
+                         bool(tall_bosses), float(full_slants), bool(cut_slants), float(turned))
     n_shards = (count + per_shard - 1) // per_shard
     shards = [
         {"name": f"shard-{k:05d}.npz", "first": k * per_shard, "count": min(per_shard, count - k * per_shard)}
