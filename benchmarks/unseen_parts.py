@@ -60,12 +60,8 @@ def build_part(occ, rng: np.random.Generator, family: str = "blocks") -> str:
         raise ValueError(f"family must be one of {FAMILIES}; got {family!r}")
     if family in ("profiles", "turned"):
         what = (build_profile if family == "profiles" else build_turned)(occ, rng)
-        axis = rng.normal(size=3)
-        occ.rotate(occ.getEntities(3), 0, 0, 0, *axis, rng.uniform(0, np.pi))
-        occ.synchronize()
-        if len(occ.getEntities(3)) != 1:
-            raise RuntimeError(f"{len(occ.getEntities(3))} volumes")
-        return ", ".join(what + ["rotated"])
+        _rotate(occ, rng, what)
+        return _one_solid(occ, what)
     curved = family in ("mixed", "machined", "finished")
     L, W, H = rng.uniform(40, 90), rng.uniform(25, 60), rng.uniform(12, 30)
     base = occ.addBox(0, 0, 0, L, W, H)
@@ -116,12 +112,22 @@ def build_part(occ, rng: np.random.Generator, family: str = "blocks") -> str:
         solid, _ = occ.cut(solid, tools)
     occ.synchronize()
     if curved:
-        axis = rng.normal(size=3)
-        occ.rotate(occ.getEntities(3), 0, 0, 0, *axis, rng.uniform(0, np.pi))
-        occ.synchronize()
-        what.append("rotated")
+        _rotate(occ, rng, what)
     if family == "finished":
         what.extend(finish_edges(occ, np.random.default_rng(rng.integers(1 << 62)), min(H, W)))
+    return _one_solid(occ, what)
+
+
+def _rotate(occ, rng: np.random.Generator, what: list[str]) -> None:
+    """Turn the model about a random axis through the origin by up to half a turn."""
+    axis = rng.normal(size=3)
+    occ.rotate(occ.getEntities(3), 0, 0, 0, *axis, rng.uniform(0, np.pi))
+    occ.synchronize()
+    what.append("rotated")
+
+
+def _one_solid(occ, what: list[str]) -> str:
+    """The description of a build that left exactly one solid (else RuntimeError)."""
     vols = occ.getEntities(3)
     if len(vols) != 1:
         raise RuntimeError(f"{len(vols)} volumes")
