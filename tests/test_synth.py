@@ -567,6 +567,36 @@ def test_turned_polycubes_are_coaxial_squares_and_valid():
     assert {0, 1, 4} <= genera  # a plain shaft, a bore (or a cross hole), a flange's four bolt holes
 
 
+def test_bolt_circles_are_evenly_spread_square_holes_that_the_radial_map_puts_on_a_circle():
+    """``bolt_circles``: bolted flanges with 3-8 square holes in the flange, apart and clear of the steps, their
+    centres on a square ring (one radius after the radial map) and evenly spread in angle; 0 leaves every
+    polycube as it was (the four on the cross axes)."""
+    from polycubenet.synth.polycube import _turned_once, bolt_circle, turned_polycube
+
+    centres = bolt_circle(5, 0.3, 2.0)
+    assert np.allclose(np.abs(np.array(centres)).max(axis=1), 2.0)
+    ang = np.sort(np.mod([np.arctan2(v, u) for u, v in centres], 2 * np.pi))
+    assert np.allclose(np.diff(ang), 2 * np.pi / 5)
+    counts = set()
+    for s in range(200):
+        a, b = turned_polycube(np.random.default_rng([52, s])), _turned_once(np.random.default_rng([52, s]), 0.025)
+        if b is not None:  # off: the same polycube as before the option
+            assert np.array_equal(a.occupancy, b.occupancy)
+        pc = turned_polycube(np.random.default_rng([52, s]), bolt_circles=1.0)
+        assert check_occupancy(pc.occupancy) is None
+        body = next(f for f in pc.features if f.kind == "turned")
+        bolts = [f for f in pc.features if f.kind == "through_hole" and f.axis == body.axis]
+        if not bolts:
+            continue
+        counts.add(len(bolts))
+        u = [k for k in range(3) if k != body.axis]
+        mid = np.array([0.5 * (f.lo + f.hi)[u] for f in bolts])
+        ring = np.abs(mid).max(axis=1)
+        assert ring.max() - ring.min() < 2 * 0.025  # one ring: each side snapped by less than the min width
+        assert pc.genus >= len(bolts)
+    assert len(counts) >= 4 and 4 not in counts or len(counts) >= 5  # several hole counts, not only the four
+
+
 def _radial_share(P: np.ndarray, N: np.ndarray, deg: float = 15.0) -> float:
     """Of the points whose normal is across an axis through the origin, the share whose normal points along
     the radius from that axis (within ``deg``; the best of the three axes): about 1 on coaxial cylinders."""

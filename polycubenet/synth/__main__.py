@@ -48,6 +48,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--turned", type=float, default=0.0, metavar="P",
                    help="the share P of pairs that are turned parts (shafts, bushings, flanges: coaxial steps rounded "
                         "about their axis, bores, bolt circles, cross holes; default 0; see make_pair)")
+    p.add_argument("--bolt-circles", type=float, default=0.0, metavar="P",
+                   help="with --turned: the share P of bolted flanges drilled on a circle of 3-8 holes instead of four "
+                        "on the cross axes (default 0; see make_pair)")
     p.add_argument("--overwrite", action="store_true", help="regenerate existing shards / replace another dataset")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -63,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
             edge_length=args.edge_length, full=args.full, overwrite=args.overwrite, cad_features=args.cad_features,
             whole_slants=args.whole_slants, max_strength=args.max_strength, tall_bosses=args.tall_bosses,
             full_slants=args.full_slants, cut_slants=args.cut_slants, turned=args.turned,
-            progress=not args.no_progress,
+            bolt_circles=args.bolt_circles, progress=not args.no_progress,
         )
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -220,6 +220,7 @@ def make_pair(
     full_slants: float = 0.0,
     cut_slants: bool = False,
     turned: float = 0.0,
+    bolt_circles: float = 0.0,
 ) -> SynthPair:
     """Generate one pair from ``seed`` (see the module docstring for the steps).
 
@@ -256,6 +257,9 @@ def make_pair(
         circle by one radial map (:class:`~polycubenet.synth.deform.RoundHole` about the axis, fading nowhere):
         shafts, bushings and flanges, which the other pairs never show whole.  0: a seed gives the pair it gave
         before.
+    bolt_circles : float in [0, 1], with ``turned``: the share of bolted flanges drilled on a circle of 3-8 holes
+        rather than four on the cross axes (:func:`~polycubenet.synth.polycube.turned_polycube`).  0: a seed gives
+        the pair it gave before.
 
     Returns
     -------
@@ -271,7 +275,7 @@ def make_pair(
     for attempt in range(1, max_attempts + 1):
         t0 = time.perf_counter()
         if turned > 0 and rng.random() < turned:
-            pc = turned_polycube(rng)
+            pc = turned_polycube(rng, bolt_circles=bolt_circles)
         else:
             pc = random_polycube(rng, style=style, n_holes=n_holes, tall_bosses=tall_bosses)
         body = next((f for f in pc.features if f.kind == "turned"), None)

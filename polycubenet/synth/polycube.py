@@ -402,7 +402,8 @@ def _random_polycube_once(
     return RandomPolycube(norm[0], norm[1], norm[2], cocc, solid_genus(cocc), style, features)
 
 
-def turned_polycube(rng: np.random.Generator, *, min_width: float = MIN_WIDTH, max_tries: int = 50) -> RandomPolycube:
+def turned_polycube(rng: np.random.Generator, *, min_width: float = MIN_WIDTH, max_tries: int = 50,
+                    bolt_circles: float = 0.0) -> RandomPolycube:
     """The polycube of a turned part (style ``turned``): what a shaft, a bushing or a flange is rounded from.
 
     2-4 coaxial steps of square section along a random axis (half sides 0.35-1, lengths 0.3-1.6, in lattice
@@ -414,18 +415,61 @@ def turned_polycube(rng: np.random.Generator, *, min_width: float = MIN_WIDTH, m
     than ``min_width`` of the diagonal or an invalid occupancy is drawn again (widening intervals would move
     the squares off the axis).  The random stream of :func:`random_polycube` does not change.
 
+    ``bolt_circles`` is the share of bolted flanges whose holes are not the four on the cross axes but 3-8
+    spread evenly round the axis from a random start angle: each centred where the square ring of half side
+    ``rb`` meets its direction, so the radial map puts the centres on one circle of radius ``rb``, as a drilled
+    bolt circle.  0 draws nothing more: a generator gives the polycubes it gave before this option existed.
+
     Returns
     -------
     RandomPolycube, normalized (bounding box centred at 0, diagonal 1), ``style == "turned"``
     """
     for _ in range(max_tries):
-        pc = _turned_once(rng, min_width)
+        pc = _turned_once(rng, min_width, bolt_circles)
         if pc is not None:
             return pc
     raise RuntimeError("turned_polycube: no valid polycube")  # pragma: no cover - never seen
 
 
-def _turned_once(rng: np.random.Generator, min_width: float) -> RandomPolycube | None:
+def bolt_circle(k: int, start: float, rb: float) -> list[tuple[float, float]]:
+    """``k`` hole centres across a turned part's axis, evenly spread in angle from ``start`` (radians), each on the
+    square ring of half side ``rb`` (max-norm ``rb``): where a radial square-to-circle map puts them on a circle."""
+    phi = start + 2 * np.pi * np.arange(k) / k
+    d = np.stack([np.cos(phi), np.sin(phi)], axis=1)
+    d = rb * d / np.abs(d).max(axis=1, keepdims=True)
+    return [(float(u), float(v)) for u, v in np.where(np.abs(d) < 1e-12, 0.0, d)]
+
+
+def _snap_sides(holes: list[tuple], fixed: list[float], tol: float, ring: tuple[float, float]) -> list[tuple] | None:
+    """Hole boxes ``(u lo, u hi, v lo, v hi)`` across a turned part's axis with every side within ``tol`` of a
+    line already there (``fixed``, the squares' half sides, both signs; or an earlier hole's side) moved onto it.
+    The lattice across the axis is one set of lines symmetric about it, so a side's mirror counts too.  None when a
+    hole would come out thinner than ``tol``, two holes would touch, or a hole would leave the flange's square
+    ring ``(inner, outer)`` half sides by less than ``tol`` (opened at the rim or into the step)."""
+    inner, outer = ring
+    lines = sorted({abs(v) for v in fixed})
+    out = []
+    for box in holes:
+        sides = []
+        for v in box:
+            near = [x for x in lines if abs(abs(v) - x) < tol]
+            a = min(near, key=lambda x: abs(abs(v) - x)) if near else abs(v)
+            if not near:
+                lines.append(a)
+            sides.append(float(np.copysign(a, v)))
+        if min(sides[1] - sides[0], sides[3] - sides[2]) < tol or np.abs(sides).max() > outer - tol:
+            return None
+        if sides[0] < inner + tol and sides[1] > -inner - tol and sides[2] < inner + tol and sides[3] > -inner - tol:
+            return None
+        out.append(tuple(sides))
+    for i, a in enumerate(out):
+        for b in out[i + 1:]:
+            if a[0] < b[1] + tol and b[0] < a[1] + tol and a[2] < b[3] + tol and b[2] < a[3] + tol:
+                return None
+    return out
+
+
+def _turned_once(rng: np.random.Generator, min_width: float, bolt_circles: float = 0.0) -> RandomPolycube | None:
     axis = int(rng.integers(3))
     n = int(rng.integers(2, 5))
     half, length = rng.uniform(0.35, 1.0, n), rng.uniform(0.3, 1.6, n)
@@ -440,6 +484,11 @@ def _turned_once(rng: np.random.Generator, min_width: float) -> RandomPolycube |
         inner = np.delete(half, flange).max()
         rb, hb = 0.5 * (half[flange] + inner), rng.uniform(0.15, 0.3) * (half[flange] - inner)
         bolts = [(rb, 0.0), (-rb, 0.0), (0.0, rb), (0.0, -rb)]
+        if bolt_circles > 0 and rng.random() < bolt_circles:
+            k = int(rng.integers(3, 9))
+            bolts = bolt_circle(k, float(rng.uniform(0.0, 2 * np.pi / k)), rb)
+            gap = min(max(abs(a - c), abs(b - d)) for i, (a, b) in enumerate(bolts) for c, d in bolts[i + 1:])
+            hb = min(hb, 0.35 * gap)  # holes apart by at least 30 % of their own width
     cross, hc, mid = None, 0.0, 0.0
     if rng.random() < 0.3:
         cross = int(rng.integers(n))
@@ -447,15 +496,22 @@ def _turned_once(rng: np.random.Generator, min_width: float) -> RandomPolycube |
         mid = 0.5 * (ends[cross] + ends[cross + 1])
     # the lattice: along the axis the step ends (and the cross hole's sides), across it every square's sides
     a_lines = np.unique(np.concatenate([ends, [mid - hc, mid + hc] if cross is not None else []]))
-    c_vals = [*half, bore] + [abs(c) + s * hb for c, _ in bolts for s in (-1, 1)] + [hc]
+    holes = [(cu - hb, cu + hb, cv - hb, cv + hb) for cu, cv in bolts]  # (u lo, u hi, v lo, v hi) of each
+    c_vals = [*half, bore, hc]
+    if bolt_circles > 0 and holes:  # hole sides within the minimum width of another line are moved onto it
+        diag0 = float(np.linalg.norm([ends[-1] - ends[0], 2 * half.max(), 2 * half.max()]))
+        holes = _snap_sides(holes, [v for v in c_vals if v > 0], min_width * diag0, (inner, half[flange]))
+        if holes is None:
+            return None
+    c_vals += [abs(v) for h in holes for v in h]
     c_lines = np.unique(np.round(np.concatenate([[v, -v] for v in c_vals if v > 0]), 12))
     ac, cc = 0.5 * (a_lines[1:] + a_lines[:-1]), 0.5 * (c_lines[1:] + c_lines[:-1])
     A, U, V = np.meshgrid(ac, cc, cc, indexing="ij")
     step = np.clip(np.searchsorted(ends, A) - 1, 0, n - 1)
     occ = np.maximum(np.abs(U), np.abs(V)) < half[step]
     occ &= ~(np.maximum(np.abs(U), np.abs(V)) < bore)
-    for cu, cv in bolts:
-        occ &= ~((step == flange) & (np.abs(U - cu) < hb) & (np.abs(V - cv) < hb))
+    for ulo, uhi, vlo, vhi in holes:
+        occ &= ~((step == flange) & (U > ulo) & (U < uhi) & (V > vlo) & (V < vhi))
     if cross is not None:
         occ &= ~((np.abs(A - mid) < hc) & (np.abs(V) < hc))  # through along the first cross axis
     coords = [None, None, None]
@@ -476,9 +532,9 @@ def _turned_once(rng: np.random.Generator, min_width: float) -> RandomPolycube |
 
     features = [Feature("turned", axis, *box({axis: ends[0], u_ax: -half.max(), v_ax: -half.max()},
                                              {axis: ends[-1], u_ax: half.max(), v_ax: half.max()}))]
-    for cu, cv in bolts:
-        features.append(Feature("through_hole", axis, *box({axis: ends[flange], u_ax: cu - hb, v_ax: cv - hb},
-                                                          {axis: ends[flange + 1], u_ax: cu + hb, v_ax: cv + hb})))
+    for ulo, uhi, vlo, vhi in holes:
+        features.append(Feature("through_hole", axis, *box({axis: ends[flange], u_ax: ulo, v_ax: vlo},
+                                                          {axis: ends[flange + 1], u_ax: uhi, v_ax: vhi})))
     if cross is not None:
         features.append(Feature("through_hole", u_ax, *box({axis: mid - hc, u_ax: -half[cross], v_ax: -hc},
                                                          {axis: mid + hc, u_ax: half[cross], v_ax: hc})))

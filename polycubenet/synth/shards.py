@@ -83,6 +83,7 @@ class ShardParams:
     full_slants: float = 0.0
     cut_slants: bool = False
     turned: float = 0.0
+    bolt_circles: float = 0.0
 
 
 def pair_record(pair: SynthPair, index: int, full: bool = False) -> dict:
@@ -287,7 +288,7 @@ def _generate(seed: int, params: ShardParams) -> SynthPair:
                      edge_length=params.edge_length, cad_features=params.cad_features,
                      whole_slants=params.whole_slants, max_strength=params.max_strength,
                      tall_bosses=params.tall_bosses, full_slants=params.full_slants, cut_slants=params.cut_slants,
-                     turned=params.turned)
+                     turned=params.turned, bolt_circles=params.bolt_circles)
 
 
 def _make_record(task: tuple[int, int, ShardParams]) -> dict:
@@ -325,6 +326,7 @@ def write_dataset(
     full_slants: float = 0.0,
     cut_slants: bool = False,
     turned: float = 0.0,
+    bolt_circles: float = 0.0,
 ) -> list[Path]:
     """Generate ``count`` pairs into ``out/shard-*.npz`` plus ``out/dataset.json``.
 
@@ -352,6 +354,7 @@ def write_dataset(
     full_slants : float, the share of whole-end slants across the whole end (:func:`~polycubenet.synth.pairs.make_pair`)
     cut_slants : bool, whole-end slants as plane cuts that shear nothing near them (:func:`~polycubenet.synth.pairs.make_pair`)
     turned : float, the share of turned parts: shafts, bushings, flanges (:func:`~polycubenet.synth.pairs.make_pair`)
+    bolt_circles : float, the share of bolted flanges drilled on a circle (:func:`~polycubenet.synth.pairs.make_pair`)
 
     Returns
     -------
@@ -365,7 +368,8 @@ def write_dataset(
     out.mkdir(parents=True, exist_ok=True)
     params = ShardParams(int(n_cond), int(n_target), str(sampler), float(edge_length), bool(full), bool(cad_features),
                          bool(whole_slants), None if max_strength is None else float(max_strength),
-                         bool(tall_bosses), float(full_slants), bool(cut_slants), float(turned))
+                         bool(tall_bosses), float(full_slants), bool(cut_slants), float(turned),
+                         float(bolt_circles))
     n_shards = (count + per_shard - 1) // per_shard
     shards = [
         {"name": f"shard-{k:05d}.npz", "first": k * per_shard, "count": min(per_shard, count - k * per_shard)}
