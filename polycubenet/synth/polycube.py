@@ -418,7 +418,9 @@ def turned_polycube(rng: np.random.Generator, *, min_width: float = MIN_WIDTH, m
     ``bolt_circles`` is the share of bolted flanges whose holes are not the four on the cross axes but 3-8
     spread evenly round the axis from a random start angle: each centred where the square ring of half side
     ``rb`` meets its direction, so the radial map puts the centres on one circle of radius ``rb``, as a drilled
-    bolt circle.  0 draws nothing more: a generator gives the polycubes it gave before this option existed.
+    bolt circle.  With it above 0, every bolted flange's hole sides within ``min_width`` of another lattice line
+    are moved onto it (:func:`_snap_sides`), the four on the axes too.  0 draws nothing more: a generator gives
+    the polycubes it gave before this option existed.
 
     Returns
     -------
@@ -447,7 +449,7 @@ def _snap_sides(holes: list[tuple], fixed: list[float], tol: float, ring: tuple[
     hole would come out thinner than ``tol``, two holes would touch, or a hole would leave the flange's square
     ring ``(inner, outer)`` half sides by less than ``tol`` (opened at the rim or into the step)."""
     inner, outer = ring
-    lines = sorted({abs(v) for v in fixed})
+    lines = list({abs(v) for v in fixed})
     out = []
     for box in holes:
         sides = []
