@@ -177,9 +177,14 @@ def denser(source: str) -> bool:
 
 def source_config(source: str, config):
     """The pipeline config ``source``'s partition uses: ``config`` itself, or for a denser source
-    :data:`DENSER_HEXES` times its hexes (``target_hexes``, or ``target_size`` over the cube root)."""
-    if not denser(source):
-        return config
+    :func:`denser_config`."""
+    return denser_config(config) if denser(source) else config
+
+
+def denser_config(config):
+    """``config`` with :data:`DENSER_HEXES` times its hexes (``target_hexes``, or ``target_size`` over the cube
+    root): the partition of the ``voxel+3*`` source and of a learned polycube's near miss
+    (:func:`polycubenet.pipeline.pull_back_learned`)."""
     if config.target_size is not None:
         return dataclasses.replace(config, target_size=config.target_size / DENSER_HEXES ** (1 / 3))
     return dataclasses.replace(config, target_hexes=int(round(config.target_hexes * DENSER_HEXES)))

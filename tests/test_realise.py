@@ -166,6 +166,48 @@ def test_a_learned_polycube_whose_registration_misses_the_slant_is_meshed_throug
     assert np.array_equal(used.occupancy, poly.occupancy) and "realised_polycube" in mesh.meta
 
 
+def test_a_near_miss_off_the_part_is_pulled_back_once_more_through_a_denser_partition(slanted_l, monkeypatch):
+    """A learned mesh that is valid but a little off the part (on round parts: the partition's) is pulled back
+    once more through the same map at ``DENSER_HEXES`` times the hexes, and kept when that one ends the chain;
+    a mesh far off the part (a wrong structure, not a coarse partition) is not, and neither is a near miss whose
+    denser pull-back is no better (the first mesh kept)."""
+    from polycubenet import pipeline, tol
+    from polycubenet.data import HexMesh
+    from polycubenet.pipeline import PipelineConfig, pull_back_learned
+    from polycubenet.policy import DENSER_HEXES
+
+    V, F, poly, _ = slanted_l
+    identity = _Map(lambda P: np.asarray(P, float))
+    cfg = PipelineConfig(target_hexes=1500, realise=None, learned_maps=("registration",),
+                         pullback=PullbackConfig(capture_spots=False))
+    base = len(pipeline.partition_polycube(poly, cfg).hexes)
+    seen = []
+
+    def fake(off):
+        def pull_back(mesh_pc, to_part, Vc, F_, config, diagonal=None):
+            n = len(mesh_pc.hexes)
+            seen.append(n)
+            d = off if n <= base else off / 1.5  # the denser partition follows the part closer
+            return HexMesh(mesh_pc.points, mesh_pc.hexes, meta={"valid": True, "sj_min": 0.4, "hausdorff": d})
+        return pull_back
+
+    bar = tol.HAUSDORFF_REL_MAX
+    monkeypatch.setattr(pipeline, "pull_back", fake(1.3 * bar))
+    mesh, _ = pull_back_learned(poly, identity, V, F, cfg)
+    assert len(seen) == 2 and seen[1] > 1.2 * seen[0] and seen[1] <= 1.1 * DENSER_HEXES * seen[0]
+    assert mesh.meta["map"] == f"registration, {DENSER_HEXES:g}x hexes" and mesh.meta["hausdorff"] < bar
+    seen.clear()
+    monkeypatch.setattr(pipeline, "pull_back", fake(4 * bar))  # not a near miss
+    mesh, _ = pull_back_learned(poly, identity, V, F, cfg)
+    assert len(seen) == 1 and mesh.meta["map"] == "registration"
+    seen.clear()
+    monkeypatch.setattr(pipeline, "pull_back", lambda mesh_pc, *a, **k: (
+        seen.append(len(mesh_pc.hexes)) or HexMesh(mesh_pc.points, mesh_pc.hexes, meta={
+            "valid": True, "sj_min": 0.4, "hausdorff": 1.3 * bar if len(mesh_pc.hexes) <= base else 1.6 * bar})))
+    mesh, _ = pull_back_learned(poly, identity, V, F, cfg)
+    assert len(seen) == 2 and mesh.meta["map"] == "registration" and mesh.meta["hausdorff"] == 1.3 * bar
+
+
 def test_the_flow_exports_the_polycube_a_mesh_was_realised_on(tmp_path, slanted_l):
     """The pull-back file carries the realised polycube (its thin slabs collapsed), which the export writes
     instead of the extracted one; a mesh of the registration alone exports the extracted polycube."""
