@@ -69,8 +69,7 @@ from .frame import Transform, canonicalize
 from .hexmesh import partition
 from .polycube import polycube_surface
 from .policy import MODES as POLYCUBE_MODES
-from .policy import DENSER_HEXES, denser_config
-from .policy import Attempt, distance_to_part, ends_chain, error_reason, extraction_config, invalid_mesh_reason, mesh_rank, refinement, run_chain, source_config, source_label, source_names  # noqa: F401
+from .policy import DENSER_HEXES, Attempt, denser_config, distance_to_part, ends_chain, error_reason, extraction_config, invalid_mesh_reason, mesh_rank, refinement, run_chain, source_config, source_label, source_names  # noqa: F401
 from .pullback import PullbackConfig, mend_spots, pull_back, worth_retry
 from .quality import QualityReport, quality_report
 from .realise import RealiseConfig, learned_map
@@ -485,7 +484,7 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
     :func:`polycubenet.realise.variants` in turn until a mesh ends the chain; ``exact`` runs last when
     ``learned_maps`` does not name it, never when ``config.realise`` is None.  A best mesh that is then still a
     near miss off the part (:func:`denser_worth`) is pulled back once more through the same map at
-    :data:`~polycubenet.policy.DENSER_HEXES` times the hexes (``map``: ``"<map>, 1.5x hexes"``).  ``meta["map"]`` says which step
+    :data:`~polycubenet.policy.DENSER_HEXES` times the hexes (``map``: ``"<map>, <DENSER_HEXES>x hexes"``).  ``meta["map"]`` says which step
     made the mesh (and why the realisation did not).  ``partitioned``: ``poly``'s partition when the caller
     made it already; ``part_points``: the part's samples the registration was fitted to (the refined map's
     target; drawn again as the pipeline draws them when not given)."""
