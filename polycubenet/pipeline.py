@@ -483,7 +483,8 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
     structure, the classical deformation's exact map), with each labelling of
     :func:`polycubenet.realise.variants` in turn until a mesh ends the chain; ``exact`` runs last when
     ``learned_maps`` does not name it, never when ``config.realise`` is None.  A best mesh that is then still a
-    near miss off the part (:func:`denser_worth`) is pulled back once more through the same map at
+    near miss off the part (:func:`denser_worth`), also after its spots are mended
+    (:func:`polycubenet.pullback.mend_spots`), is pulled back once more through the same map at
     :data:`~polycubenet.policy.DENSER_HEXES` times the hexes (``map``: ``"<map>, <DENSER_HEXES>x hexes"``).  ``meta["map"]`` says which step
     made the mesh (and why the realisation did not).  ``partitioned``: ``poly``'s partition when the caller
     made it already; ``part_points``: the part's samples the registration was fitted to (the refined map's
@@ -538,15 +539,18 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
             # a tie with a map's mesh: the exact map
             if keep(realised, exact.polycube, tie_wins=best is not None and "realised" not in best.meta):
                 return realised, exact.polycube
+    if config.pullback.capture_spots and "realised" not in best.meta:  # a realised mesh was mended already
+        best = mend_spots(best, Vc, F, config.pullback, diagonal)
     if denser_worth(best, maps):
-        # the same polycube and map, a finer partition: on round parts the near miss is the partition's
+        # still off after the mend: the same polycube and map, a finer partition (on round parts the near miss is
+        # the partition's), its spots mended too
         step = best.meta["map"]
         m = pull_back(partition_polycube(used, denser_config(config)), maps[step], Vc, F, unmended, diagonal)
         m.meta["map"] = f"{step}, {DENSER_HEXES:g}x hexes"
+        if config.pullback.capture_spots:
+            m = mend_spots(m, Vc, F, config.pullback, diagonal)
         if keep(m, used):
             return m, used
-    if config.pullback.capture_spots and "realised" not in best.meta:  # a realised mesh was mended already
-        best = mend_spots(best, Vc, F, config.pullback, diagonal)
     if "realised" not in best.meta and "exact" in steps:
         why = "; ".join(why_not) if why_not else "its mesh ranks above the realised ones"
         best.meta["map"] = f"{best.meta['map']} ({why})"

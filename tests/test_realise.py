@@ -206,6 +206,18 @@ def test_a_near_miss_off_the_part_is_pulled_back_once_more_through_a_denser_part
             "valid": True, "sj_min": 0.4, "hausdorff": 1.3 * bar if len(mesh_pc.hexes) <= base else 1.6 * bar})))
     mesh, _ = pull_back_learned(poly, identity, V, F, cfg)
     assert len(seen) == 2 and mesh.meta["map"] == "registration" and mesh.meta["hausdorff"] == 1.3 * bar
+    # the spots are mended first: a near miss the mend brings onto the part costs no denser pull-back; one it
+    # leaves off gets it, and the denser mesh is mended too
+    mended = dataclasses.replace(cfg, pullback=PullbackConfig(capture_spots=True))
+    for reach, pulls in ((1.7, 1), (1.2, 2)):  # how far off the part a mend can still close the gap
+        seen.clear()
+        monkeypatch.setattr(pipeline, "pull_back", fake(1.6 * bar))  # the denser one 1.07 x the bar off
+        monkeypatch.setattr(pipeline, "mend_spots", lambda m, *a, r=reach, **k: HexMesh(
+            m.points, m.hexes, meta={**m.meta, "hausdorff": 0.9 * bar, "spots": {"kept": True}})
+            if bar < m.meta["hausdorff"] <= r * bar else m)
+        mesh, _ = pull_back_learned(poly, identity, V, F, mended)
+        assert len(seen) == pulls and mesh.meta["hausdorff"] < bar and mesh.meta["spots"]["kept"]
+        assert mesh.meta["map"] == ("registration" if pulls == 1 else f"registration, {DENSER_HEXES:g}x hexes")
 
 
 def test_the_flow_exports_the_polycube_a_mesh_was_realised_on(tmp_path, slanted_l):
