@@ -637,3 +637,27 @@ def test_turned_share_is_recorded_and_regenerated(tmp_path):
     for k, rec in enumerate(shard):
         again = shard.regenerate(k)
         assert np.array_equal(rec["polycube"].occupancy, again.polycube.occupancy)
+
+
+def test_the_flange_share_sets_how_many_turned_parts_carry_a_bolted_flange(tmp_path):
+    """``flanges``: the share of turned polycubes with a flange at one end (bolt holes are drilled only in a
+    flange, in 70 % of them): none at 0, most at 1; recorded in the manifest and regenerated with it."""
+    from polycubenet.synth.polycube import FLANGES, turned_polycube
+
+    def bolted(share: float) -> float:
+        n = 0
+        for s in range(60):
+            pc = turned_polycube(np.random.default_rng([53, s]), flanges=share)
+            assert check_occupancy(pc.occupancy) is None
+            body = next(f for f in pc.features if f.kind == "turned")
+            n += any(f.kind == "through_hole" and f.axis == body.axis for f in pc.features)
+        return n / 60
+
+    few, most = bolted(FLANGES), bolted(1.0)
+    assert bolted(0.0) == 0.0 and most > 0.4 and most > 2 * few > 0.1, (few, most)
+    rc = synth_main(["--out", str(tmp_path), "--count", "2", "--seed", "6", "--per-shard", "2", "--n-cond", "40",
+                     "--n-target", "40", "--turned", "1", "--flanges", "1", "--no-progress"])
+    assert rc == 0 and json.loads((tmp_path / "dataset.json").read_text())["params"]["flanges"] == 1.0
+    shard = load_shard(tmp_path / "shard-00000.npz")
+    for k, rec in enumerate(shard):
+        assert np.array_equal(rec["polycube"].occupancy, shard.regenerate(k).polycube.occupancy)

@@ -11,6 +11,7 @@ import sys
 import time
 
 from .pairs import EDGE_LENGTH, SAMPLERS
+from .polycube import FLANGES
 from .shards import write_dataset
 
 
@@ -51,6 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bolt-circles", type=float, default=0.0, metavar="P",
                    help="with --turned: the share P of bolted flanges drilled on a circle of 3-8 holes instead of four "
                         "on the cross axes (default 0; see make_pair)")
+    p.add_argument("--flanges", type=float, default=FLANGES, metavar="P",
+                   help=f"with --turned: the share P of turned parts with a flange at one end (default {FLANGES:g}; "
+                        "see make_pair)")
     p.add_argument("--overwrite", action="store_true", help="regenerate existing shards / replace another dataset")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -66,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
             edge_length=args.edge_length, full=args.full, overwrite=args.overwrite, cad_features=args.cad_features,
             whole_slants=args.whole_slants, max_strength=args.max_strength, tall_bosses=args.tall_bosses,
             full_slants=args.full_slants, cut_slants=args.cut_slants, turned=args.turned,
-            bolt_circles=args.bolt_circles, progress=not args.no_progress,
+            bolt_circles=args.bolt_circles, flanges=args.flanges, progress=not args.no_progress,
         )
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -41,8 +41,8 @@ from ..frame import Transform, canonicalize, face_normals_areas
 from ..sampling import interpolate, poisson_disk, uniform_sample
 from .deform import DeformationMap, RoundHole, check_invertible, empty_cells, random_deformation
 from ..tol import AREA_REL
-from .polycube import (convex_edges, polycube_quads, random_polycube, surface_genus, transform_grid, triangulate_quads,
-                       turned_polycube)
+from .polycube import (FLANGES, convex_edges, polycube_quads, random_polycube, surface_genus, transform_grid,
+                       triangulate_quads, turned_polycube)
 
 #: default target edge length of the refined surfaces (generator frame, diagonal 1)
 EDGE_LENGTH = 0.02
@@ -221,6 +221,7 @@ def make_pair(
     cut_slants: bool = False,
     turned: float = 0.0,
     bolt_circles: float = 0.0,
+    flanges: float = FLANGES,
 ) -> SynthPair:
     """Generate one pair from ``seed`` (see the module docstring for the steps).
 
@@ -260,6 +261,9 @@ def make_pair(
     bolt_circles : float in [0, 1], with ``turned``: the share of bolted flanges drilled on a circle of 3-8 holes
         rather than four on the cross axes (:func:`~polycubenet.synth.polycube.turned_polycube`).  0: a seed gives
         the pair it gave before.
+    flanges : float in [0, 1], with ``turned``: the share of turned parts with a flange at one end
+        (:func:`~polycubenet.synth.polycube.turned_polycube`).  The default
+        (:data:`~polycubenet.synth.polycube.FLANGES`): a seed gives the pair it gave before.
 
     Returns
     -------
@@ -275,7 +279,7 @@ def make_pair(
     for attempt in range(1, max_attempts + 1):
         t0 = time.perf_counter()
         if turned > 0 and rng.random() < turned:
-            pc = turned_polycube(rng, bolt_circles=bolt_circles)
+            pc = turned_polycube(rng, bolt_circles=bolt_circles, flanges=flanges)
         else:
             pc = random_polycube(rng, style=style, n_holes=n_holes, tall_bosses=tall_bosses)
         body = next((f for f in pc.features if f.kind == "turned"), None)

@@ -46,6 +46,7 @@ import numpy as np
 from ..atomic import load_npz, save_npz, write_json
 from ..data import Polycube
 from .pairs import EDGE_LENGTH, SynthPair, make_pair
+from .polycube import FLANGES
 
 FORMAT = 1
 MANIFEST = "dataset.json"
@@ -84,6 +85,7 @@ class ShardParams:
     cut_slants: bool = False
     turned: float = 0.0
     bolt_circles: float = 0.0
+    flanges: float = FLANGES
 
 
 def pair_record(pair: SynthPair, index: int, full: bool = False) -> dict:
@@ -288,7 +290,7 @@ def _generate(seed: int, params: ShardParams) -> SynthPair:
                      edge_length=params.edge_length, cad_features=params.cad_features,
                      whole_slants=params.whole_slants, max_strength=params.max_strength,
                      tall_bosses=params.tall_bosses, full_slants=params.full_slants, cut_slants=params.cut_slants,
-                     turned=params.turned, bolt_circles=params.bolt_circles)
+                     turned=params.turned, bolt_circles=params.bolt_circles, flanges=params.flanges)
 
 
 def _make_record(task: tuple[int, int, ShardParams]) -> dict:
@@ -327,6 +329,7 @@ def write_dataset(
     cut_slants: bool = False,
     turned: float = 0.0,
     bolt_circles: float = 0.0,
+    flanges: float = FLANGES,
 ) -> list[Path]:
     """Generate ``count`` pairs into ``out/shard-*.npz`` plus ``out/dataset.json``.
 
@@ -355,6 +358,7 @@ def write_dataset(
     cut_slants : bool, whole-end slants as plane cuts that shear nothing near them (:func:`~polycubenet.synth.pairs.make_pair`)
     turned : float, the share of turned parts: shafts, bushings, flanges (:func:`~polycubenet.synth.pairs.make_pair`)
     bolt_circles : float, the share of bolted flanges drilled on a circle (:func:`~polycubenet.synth.pairs.make_pair`)
+    flanges : float, the share of turned parts with a flange (:func:`~polycubenet.synth.pairs.make_pair`)
 
     Returns
     -------
@@ -369,7 +373,7 @@ def write_dataset(
     params = ShardParams(int(n_cond), int(n_target), str(sampler), float(edge_length), bool(full), bool(cad_features),
                          bool(whole_slants), None if max_strength is None else float(max_strength),
                          bool(tall_bosses), float(full_slants), bool(cut_slants), float(turned),
-                         float(bolt_circles))
+                         float(bolt_circles), float(flanges))
     n_shards = (count + per_shard - 1) // per_shard
     shards = [
         {"name": f"shard-{k:05d}.npz", "first": k * per_shard, "count": min(per_shard, count - k * per_shard)}
