@@ -402,7 +402,7 @@ def _random_polycube_once(
     return RandomPolycube(norm[0], norm[1], norm[2], cocc, solid_genus(cocc), style, features)
 
 
-#: the share of turned polycubes (:func:`turned_polycube`) with a flange at one end, unless a dataset asks for more
+#: the share of turned polycubes (:func:`turned_polycube`) with a flange at one end unless a dataset sets another
 FLANGES = 0.35
 
 
