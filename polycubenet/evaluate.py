@@ -133,6 +133,18 @@ def by_feature(rows: list[dict]) -> dict:
     return out
 
 
+def by_genus(rows: list[dict]) -> dict:
+    """Pairs, exact structure, genus matched and extraction accepted per ground-truth genus (keys are the
+    genus as a string, ascending): where a model's misses sit, e.g. a bolted flange's many holes."""
+    out = {}
+    for g in sorted({int(r["genus"]) for r in rows}):
+        sel = [r for r in rows if int(r["genus"]) == g]
+        out[str(g)] = {"pairs": len(sel), "exact": float(np.mean([r["exact"] for r in sel])),
+                       "genus_match": float(np.mean([r["genus_match"] for r in sel])),
+                       "extracted": float(np.mean([r["error"] is None for r in sel]))}
+    return out
+
+
 def _pairs(directory: str | Path, count: int):
     n = 0
     for path in list_shards(directory):
@@ -279,6 +291,7 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
             out["exact_structure_rate_identity"] = float(np.mean([r["exact_identity"] for r in rows]))
             out["same_cells_rate_identity"] = float(np.mean([r["plane_offset_identity"] is not None for r in rows]))
         out["exact_by_thinnest_slab"] = by_thinnest_slab(rows)
+        out["by_genus"] = by_genus(rows)
         if any(r.get("feature") for r in rows):
             out["exact_by_feature"] = by_feature(rows)
         # over the extracted clouds: planes with no ground-truth plane within 0.02, and the reverse

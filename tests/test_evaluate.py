@@ -93,6 +93,19 @@ def test_feature_class_reads_the_recorded_deformation(tmp_path):
         assert (s.feature(k) == "slanted end") == ("slant_end" in kinds)
 
 
+def test_by_genus_splits_the_rates_by_the_pairs_own_genus():
+    from polycubenet.evaluate import by_genus
+
+    rows = [{"genus": 5, "exact": False, "genus_match": False, "error": "4 components"},
+            {"genus": 0, "exact": True, "genus_match": True, "error": None},
+            {"genus": 5, "exact": True, "genus_match": True, "error": None},
+            {"genus": 0, "exact": False, "genus_match": True, "error": None}]
+    b = by_genus(rows)
+    assert list(b) == ["0", "5"]  # ascending, only the genera present
+    assert b["0"] == {"pairs": 2, "exact": 0.5, "genus_match": 1.0, "extracted": 1.0}
+    assert b["5"] == {"pairs": 2, "exact": 0.5, "genus_match": 0.5, "extracted": 0.5}
+
+
 def test_by_feature_counts_exact_and_extracted_per_class():
     from polycubenet.evaluate import by_feature
 
