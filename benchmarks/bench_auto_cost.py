@@ -1,7 +1,7 @@
 """What ``--polycube auto`` costs over ``--polycube classical``, and what the learned attempt costs.
 
     python benchmarks/bench_auto_cost.py [--parts examples/parts] [--hexes 3000] \\
-        [--json benchmarks/results/bench_auto_cost.json]
+        [--checkpoint CANDIDATE.pt] [--json benchmarks/results/bench_auto_cost.json]
 
 Runs the CLI twice on the same folder, each into a fresh output and work folder (nothing
 cached), in this order: ``--polycube classical`` then ``--polycube auto`` (the shipped
@@ -44,11 +44,14 @@ def main(argv=None) -> int:
     ap.add_argument("--hexes", type=int, default=3000)
     ap.add_argument("--extra", nargs="*", default=["--polycube-points", "8192"],
                     help="more CLI flags for both runs (default: those of make demo)")
+    ap.add_argument("--checkpoint", default=None,
+                    help="the auto run's checkpoint (default: the shipped one), e.g. a candidate before it is shipped")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/bench_auto_cost.json"))
     args = ap.parse_args(argv)
     res = {}
     for mode in ("classical", "auto"):
-        wall, m = run_cli(mode, args.parts, args.hexes, args.extra)
+        extra = args.extra + (["--checkpoint", args.checkpoint] if args.checkpoint and mode == "auto" else [])
+        wall, m = run_cli(mode, args.parts, args.hexes, extra)
         rows = m["parts"]
         res[mode] = {"wall_s": round(wall, 1), "meshed": sum(r["status"] == "meshed" for r in rows),
                      "valid": sum(bool((r.get("quality") or {}).get("valid")) for r in rows),
@@ -82,7 +85,7 @@ def main(argv=None) -> int:
               f"{c.get('sj_min') or float('nan'):>15.3f} {off[0]:>10.2f} {off[1]:>15.2f} {r['rejected_s']:>10.1f}")
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps({"ratio": ratio, "learned": learned, "learned_within_bar": learned_within,
-                                           "hexes": args.hexes,
+                                           "hexes": args.hexes, "checkpoint": args.checkpoint,
                                            "cpus": os.cpu_count(), **res}, indent=1))
     return 0
 
