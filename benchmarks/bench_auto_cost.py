@@ -5,7 +5,7 @@
 
 Runs the CLI twice on the same folder, each into a fresh output and work folder (nothing
 cached), in this order: ``--polycube classical`` then ``--polycube auto`` (the shipped
-checkpoint, default steps and learned points), and reports the wall time of each, the
+checkpoint or ``--checkpoint``'s, default steps and learned points), and reports the wall time of each, the
 ratio auto / classical (target <= 1.3), and from the manifests: per part, which polycube
 was kept and the seconds that went to rejected polycubes (the learned attempt when it
 was rejected).  The same machine and the same run: the ratio is what to compare.
