@@ -473,7 +473,8 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
                       diagonal: float | None = None, part: str | None = None,
                       partitioned: HexMesh | None = None,
                       anchored: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-                      part_points: np.ndarray | None = None) -> tuple[HexMesh, Polycube]:
+                      part_points: np.ndarray | None = None, phase: str = "all",
+                      prior: HexMesh | None = None) -> tuple[HexMesh, Polycube]:
     """A learned polycube's partition and pull-back (both drivers call this): through the steps of
     ``config.learned_maps`` in turn until one mesh ends the chain (:func:`polycubenet.policy.ends_chain`: valid,
     on the part, not under the bar), the best mesh (:func:`polycubenet.policy.mesh_rank`) and its polycube kept.
@@ -488,7 +489,16 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
     :data:`~polycubenet.policy.DENSER_HEXES` times the hexes (``map``: ``"<map>, <DENSER_HEXES>x hexes"``).  ``meta["map"]`` says which step
     made the mesh (and why the realisation did not).  ``partitioned``: ``poly``'s partition when the caller
     made it already; ``part_points``: the part's samples the registration was fitted to (the refined map's
-    target; drawn again as the pipeline draws them when not given)."""
+    target; drawn again as the pipeline draws them when not given).
+
+    ``phase`` splits the same work in two calls (a policy may put other work between them): ``"map"`` runs the
+    first step alone (a map: the registration by default), as it is, without mending its spots; ``"rest"``, given
+    that mesh as ``prior``, runs every later step and the mend and denser pull-back after them.  The two calls give
+    exactly what one call (``"all"``) gives: the first step's mesh when it ends the chain, else the rest's."""
+    if phase not in ("all", "map", "rest"):
+        raise ValueError(f"phase must be 'all', 'map' or 'rest'; got {phase!r}")
+    if (phase == "rest") != (prior is not None):
+        raise ValueError("a prior mesh goes with phase 'rest', and only with it")
     mesh_pc = partition_polycube(poly, config) if partitioned is None else partitioned
     steps = [n for n in config.learned_maps if n != "exact" or config.realise is not None]
     if config.realise is not None and "exact" not in steps:
@@ -513,6 +523,13 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
                 best, used = m, polycube
         return ends_chain(m.meta, config.min_sj)
 
+    if phase != "all" and (steps[0] in ("exact", "refined") or steps[0] not in maps):
+        raise ValueError(f"phase {phase!r} needs a map as the first of learned_maps; got {steps[0]!r}")
+    if phase == "map":
+        steps = steps[:1]
+    elif phase == "rest":
+        keep(prior, poly)
+        steps = steps[1:]
     for step in steps:
         if step != "exact":
             if step not in maps:  # a map this polycube does not have (anchors of a cloud without them)
@@ -522,7 +539,7 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
             # its spots are mended only when no later step ends the chain (below): a realised mesh is better
             m = pull_back(mesh_pc, maps[step], Vc, F, unmended, diagonal)
             m.meta["map"] = step
-            if keep(m, poly):
+            if keep(m, poly) or phase == "map":
                 return m, poly
             continue
         for rc in realise_variants(config.realise):

@@ -323,3 +323,32 @@ def test_the_learned_steps_run_in_their_order_and_stop_at_the_first_mesh_that_en
     assert mesh.meta["map"] in ("refined", "exact (realised)")
     with pytest.raises(ValueError, match="learned_maps"):
         pull_back_learned(poly, identity, V, F, PipelineConfig(target_hexes=1500, learned_maps=("exact",)))
+
+
+def test_the_map_and_the_rest_in_two_calls_give_what_one_call_gives(slanted_l):
+    """``phase="map"`` runs the registration's map alone (no mend, no realisation); ``phase="rest"`` with that
+    mesh runs the realisation (and the mend and denser pull-back after it): the mesh, its map and its polycube
+    are those of one call.  A map's mesh that ends the chain needs no rest."""
+    from polycubenet.pipeline import PipelineConfig, pull_back_learned
+    from polycubenet.policy import ends_chain
+
+    V, F, poly, shear = slanted_l
+    cfg = PipelineConfig(target_hexes=1500)
+    identity = _Map(lambda P: np.asarray(P, float))  # misses the slant: the realisation meshes it
+    whole, whole_poly = pull_back_learned(poly, identity, V, F, cfg)
+    first, _ = pull_back_learned(poly, identity, V, F, cfg, phase="map")
+    assert first.meta["map"] == "registration" and "spots" not in first.meta and not ends_chain(first.meta, cfg.min_sj)
+    rest, rest_poly = pull_back_learned(poly, identity, V, F, cfg, phase="rest", prior=first)
+    assert rest.meta["map"] == whole.meta["map"] == "exact (realised)"
+    assert np.allclose(rest.points, whole.points) and np.array_equal(rest.hexes, whole.hexes)
+    assert np.array_equal(rest_poly.occupancy, whole_poly.occupancy) and rest.meta["sj_min"] == whole.meta["sj_min"]
+    exact = _Map(shear)  # the true map: its own mesh ends the chain
+    first, _ = pull_back_learned(poly, exact, V, F, cfg, phase="map")
+    whole, _ = pull_back_learned(poly, exact, V, F, cfg)
+    assert ends_chain(first.meta, cfg.min_sj) and whole.meta["map"] == "registration"
+    assert np.allclose(first.points, whole.points)
+    with pytest.raises(ValueError, match="prior"):
+        pull_back_learned(poly, identity, V, F, cfg, phase="rest")
+    with pytest.raises(ValueError, match="first of learned_maps"):
+        pull_back_learned(poly, identity, V, F, PipelineConfig(target_hexes=1500, learned_maps=("exact", "registration")),
+                          phase="map")

@@ -1,0 +1,184 @@
+"""In what order should the learned draws' pull-back steps run?  Every draw's units timed, orders simulated.
+
+    python benchmarks/learned_order.py [--checkpoint C.pt] [--sets examples turned:5] [--count 16] \\
+        [--json benchmarks/results/learned_order.json]
+
+A learned draw that passes extraction costs two units of pull-back work
+(:func:`polycubenet.pipeline.pull_back_learned`'s ``phase``): **A**, its mesh through the registration's map,
+and, when that mesh does not end the chain, **B**, the rest (the exact realisation, the refined map after a near
+miss, the spot mend, the denser pull-back).  Today's policy runs A1 B1 A2 B2 ... (each draw to its end before
+the next draw).  Because every order runs the same units until one ends the chain, every order meshes the same
+parts; only the seconds differ.  This script meshes each part through the learned source alone (``--polycube
+learned``, 3000 hexes, as ``benchmarks/unseen_parts.py --mesh``), recording each draw's seconds before the
+pull-back (generation, extraction, registration), A and B, and whether each ended the chain, then replays three
+orders on the same records:
+
+* ``now``: A1 B1 A2 B2 ...
+* ``defer``: every draw's A first (A1 A2 ...), then the B of each draw that gave a mesh, in draw order;
+* ``defer-far``: a draw's B right after its A when A's mesh is a near miss
+  (:func:`polycubenet.pipeline.near_miss`: valid, at most twice the Hausdorff bar off), otherwise after every
+  later draw's A;
+* ``now-rf`` and ``defer-far-rf``: the same, a near miss's B with the refined map before the exact realisation
+  (``learned_maps=("registration", "refined", "exact")``; recorded as ``b_rf`` for near misses only: elsewhere
+  the refined map is not tried and B is the same).
+
+It stops recording a part at the first A that ends the chain (no order goes further); B units are recorded for
+every draw before it.  Prints one row per part and a total per order and set; writes the JSON.  ``--sets``:
+``examples`` (``examples/parts/*.step``), a folder of STEP files and never-seen ``family:seed`` sets of ``unseen_parts.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import sys
+import tempfile
+import time
+import types
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+ORDERS = ("now", "defer", "defer-far", "now-rf", "defer-far-rf")
+
+
+def record_part(path: Path, checkpoint: str, steps: int) -> list[dict]:
+    """One dict per learned draw of ``path``: ``pre`` seconds (generation to registration and partition), ``extract``
+    (None, or why the polycube was rejected), ``a`` / ``b`` seconds, ``a_end`` / ``b_end`` (the unit's mesh ends the
+    chain), ``near`` (A's mesh is a near miss); ``b`` None where it was not run."""
+    import numpy as np
+
+    from polycubenet.errors import PolycubeError
+    from polycubenet.frame import canonicalize
+    from polycubenet.inference import ModelSource
+    from polycubenet.io import load_part
+    from polycubenet.pipeline import (PipelineConfig, _polycube_stages, near_miss, own_diagonal, partition_polycube,
+                                      pull_back_learned, source_chain)
+    from polycubenet.policy import ends_chain, extraction_config, source_config
+    from polycubenet.registration import align
+    from polycubenet.sampling import poisson_disk
+
+    cfg = PipelineConfig(polycube="learned", target_hexes=3000)
+    part = load_part(path)
+    Vc, T = canonicalize(part.vertices, part.faces)
+    F = part.faces
+    sample = poisson_disk(Vc, F, cfg.n_sample, seed=cfg.seed)
+    genus = part.meta.get("genus")
+    clock = lambda name: contextlib.nullcontext()  # noqa: E731
+    out = []
+    for label, source in source_chain(ModelSource(checkpoint, steps=steps, device="cpu"), cfg):
+        row = {"draw": label, "extract": None, "a": None, "b": None, "a_end": False, "b_end": False, "near": False}
+        out.append(row)
+        t0 = time.perf_counter()
+        try:
+            cloud, P, N, A, poly = _polycube_stages(source, sample, Vc, F, genus, extraction_config(label, cfg),
+                                                    path.name, clock, types.SimpleNamespace())
+        except PolycubeError as exc:
+            row["pre"], row["extract"] = round(time.perf_counter() - t0, 2), str(exc)[:200]
+            continue
+        rng = np.random.default_rng(cfg.seed + 5)
+        sub = rng.choice(len(P), size=min(cfg.n_register, len(P)), replace=False)
+        corr = align(sample, P[sub], N[sub])
+        c = source_config(label, cfg)
+        mesh_pc = partition_polycube(poly, c)
+        row["pre"] = round(time.perf_counter() - t0, 2)
+        kw = dict(diagonal=own_diagonal(Vc, T), part=path.name, partitioned=mesh_pc,
+                  anchored=None if A is None else (P, N, A), part_points=sample.points)
+        t0 = time.perf_counter()
+        first, _ = pull_back_learned(poly, corr, Vc, F, c, phase="map", **kw)
+        row["a"], row["a_end"], row["near"] = round(time.perf_counter() - t0, 2), ends_chain(first.meta, cfg.min_sj), \
+            near_miss(first)
+        row["a_off"] = first.meta.get("hausdorff")
+        if row["a_end"]:
+            break
+        t0 = time.perf_counter()
+        rest, _ = pull_back_learned(poly, corr, Vc, F, c, phase="rest", prior=first, **kw)
+        row["b"], row["b_end"], row["b_map"] = round(time.perf_counter() - t0, 2), ends_chain(rest.meta, cfg.min_sj), \
+            rest.meta.get("map")
+        if row["near"]:  # the refined map before the realisation (the only steps a near miss adds)
+            rf = dataclasses.replace(c, learned_maps=("registration", "refined", "exact"))
+            t0 = time.perf_counter()
+            rest, _ = pull_back_learned(poly, corr, Vc, F, rf, phase="rest", prior=first, **kw)
+            row["b_rf"], row["b_rf_end"], row["b_rf_map"] = round(time.perf_counter() - t0, 2), \
+                ends_chain(rest.meta, cfg.min_sj), rest.meta.get("map")
+    return out
+
+
+def replay(draws: list[dict], order: str) -> tuple[float, str | None]:
+    """Seconds the learned source costs under ``order`` and the unit that ended the chain (None: none did)."""
+    spent = 0.0
+    later: list[dict] = []
+    rf = order.endswith("-rf")  # a near miss's rest with the refined map before the realisation
+    order = order.removesuffix("-rf")
+    for d in draws:
+        spent += d["pre"]
+        if d["a"] is None:
+            continue
+        spent += d["a"]
+        if d["a_end"]:
+            return spent, f"A {d['draw']}"
+        if order == "now" or (order == "defer-far" and d["near"]):
+            b, end = (d["b_rf"], d["b_rf_end"]) if rf and d["near"] else (d["b"], d["b_end"])
+            spent += b
+            if end:
+                return spent, f"B{'rf' if rf and d['near'] else ''} {d['draw']}"
+        else:
+            later.append(d)
+    for d in later:
+        spent += d["b"]
+        if d["b_end"]:
+            return spent, f"B {d['draw']}"
+    return spent, None
+
+
+def main(argv=None) -> int:
+    from unseen_parts import make_parts
+
+    from polycubenet.atomic import write_json
+    from polycubenet.inference import DEFAULT_CHECKPOINT, resolve_steps
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT))
+    ap.add_argument("--sets", nargs="+", default=["examples"])
+    ap.add_argument("--count", type=int, default=16)
+    ap.add_argument("--json", default=str(ROOT / "benchmarks/results/learned_order.json"))
+    args = ap.parse_args(argv)
+    import torch
+
+    torch.set_num_threads(1)
+    steps = int(resolve_steps(None, "cpu", args.checkpoint)[1])
+    tmp = Path(tempfile.mkdtemp(prefix="learned-order-"))
+    result = {"checkpoint": args.checkpoint, "steps": steps, "orders": ORDERS, "sets": {}}
+    for spec in args.sets:
+        if spec == "examples":
+            paths = sorted((ROOT / "examples/parts").glob("*.step"))
+        elif Path(spec).is_dir():
+            paths = sorted(Path(spec).glob("*.step"))
+        else:
+            family, seed = spec.split(":")
+            paths = [p for p, _ in make_parts(tmp / spec.replace(":", "_"), args.count, int(seed), family)]
+        rows = []
+        print(f"\n{spec}: {len(paths)} parts\n{'part':<22} {'meshed':>6} " + " ".join(f"{o:>10}" for o in ORDERS)
+              + "  ended by (now / defer-far)", flush=True)
+        for p in paths:
+            draws = record_part(p, args.checkpoint, steps)
+            sims = {o: replay(draws, o) for o in ORDERS}
+            rows.append({"part": p.stem, "draws": draws, **{o: {"seconds": round(s, 1), "ended_by": e}
+                                                              for o, (s, e) in sims.items()}})
+            print(f"{p.stem:<22} {'yes' if sims['now'][1] else 'no':>6} "
+                  + " ".join(f"{sims[o][0]:>10.1f}" for o in ORDERS)
+                  + f"  {sims['now'][1]} / {sims['defer-far'][1]}", flush=True)
+        totals = {o: round(sum(r[o]["seconds"] for r in rows), 1) for o in ORDERS}
+        meshed = sum(r["now"]["ended_by"] is not None for r in rows)
+        print(f"{'total':<22} {meshed:>6} " + " ".join(f"{totals[o]:>10.1f}" for o in ORDERS), flush=True)
+        result["sets"][spec] = {"parts": rows, "meshed": meshed, "seconds": totals}
+        write_json(args.json, result)
+    print(f"\nwrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
