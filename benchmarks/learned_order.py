@@ -98,6 +98,7 @@ def record_part(path: Path, checkpoint: str, steps: int) -> list[dict]:
         rest, _ = pull_back_learned(poly, corr, Vc, F, c, phase="rest", prior=first, **kw)
         row["b"], row["b_end"], row["b_map"] = round(time.perf_counter() - t0, 2), ends_chain(rest.meta, cfg.min_sj), \
             rest.meta.get("map")
+        row["b_planar"] = (rest.meta.get("realised") or {}).get("planar_patches")  # which labelling realised it
         if row["near"]:  # the refined map before the realisation (the only steps a near miss adds)
             rf = dataclasses.replace(c, learned_maps=("registration", "refined", "exact"))
             t0 = time.perf_counter()
@@ -159,6 +160,7 @@ def main(argv=None) -> int:
             paths = sorted(Path(spec).glob("*.step"))
         else:
             family, seed = spec.split(":")
+            (tmp / spec.replace(":", "_")).mkdir(parents=True)
             paths = [p for p, _ in make_parts(tmp / spec.replace(":", "_"), args.count, int(seed), family)]
         rows = []
         print(f"\n{spec}: {len(paths)} parts\n{'part':<22} {'meshed':>6} " + " ".join(f"{o:>10}" for o in ORDERS)
