@@ -64,8 +64,9 @@ STAGE_VERSIONS = {
     "register": "2",  # 2: the classical exact map replaces CPD
     # 2: classical pullback as in pipeline.mesh_surface; 3: sj_terms by operators; 4: realise.py;
     # 5: no-pillow retry; 6: uncovered spots mended (pullback.mend_spots); 7: no mend past capture_max (4 %)
-    # 8: a few poor hexes eased with surface slack (pullback.ease_poor_hexes)
-    "pullback": "8",
+    # 8: a few poor hexes eased with surface slack (pullback.ease_poor_hexes); 9: no second labelling after a
+    # realisation whose flattened part does not bound the learned structure
+    "pullback": "9",
     "export": "1",
 }
 #: stage names in pipeline order (what ``stage reached`` in the manifest refers to)

@@ -482,7 +482,12 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
     field after it; the model's own, from ``anchored`` = the cleaned cloud's points, normals and anchors), or
     ``exact``: the polycube realised exactly on the part (:func:`polycubenet.realise.learned_map`: the same
     structure, the classical deformation's exact map), with each labelling of
-    :func:`polycubenet.realise.variants` in turn until a mesh ends the chain; ``exact`` runs last when
+    :func:`polycubenet.realise.variants` in turn until a mesh ends the chain, the next labelling only after one
+    that realised the structure (its mesh under the bar or off the part: session 15's mixed_11_002), never after one
+    whose flattened part does not bound it (session 56, the 114.15 h file on the examples and the never-seen turned 5
+    and machined 103 parts: in all 24 realisations where the first labelling did not bound it, the second did not
+    either, at 5-7 s each; ``benchmarks/results/s56_learned_order_C114_*.json``);
+    ``exact`` runs last when
     ``learned_maps`` does not name it, never when ``config.realise`` is None.  A best mesh that is then still a
     near miss off the part (:func:`denser_worth`), also after its spots are mended
     (:func:`polycubenet.pullback.mend_spots`), is pulled back once more through the same map at
@@ -544,9 +549,9 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
             continue
         for rc in realise_variants(config.realise):
             exact, why = learned_map(Vc, F, poly, corr, rc, seed=config.seed, part=part, cache=cache)
-            if exact is None:
+            if exact is None:  # the part does not flatten onto this structure: another labelling of it is not tried
                 why_not.append(why)
-                continue
+                break
             realised = _pull_back_classical(partition_polycube(exact.polycube, config), exact.map, Vc, F, config,
                                             diagonal, retry_below=config.min_sj)
             realised.meta["map"] = "exact (realised)"

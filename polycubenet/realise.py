@@ -110,7 +110,8 @@ def variants(config: RealiseConfig) -> list[RealiseConfig]:
     """The labellings a realisation tries in turn: with each planar face of the part one label, then (where
     that mesh does not end the chain) triangle by triangle.  Measured on never-seen mixed seed 11 (16 parts,
     the 26.35 h file): triangle labels alone 8 meshed (mixed_11_007 0.216, 11_002 0.304), planar faces alone
-    7 (11_007 0.250 at the first draw, 11_002 0.038: under the bar), both in turn keep each part's better one."""
+    7 (11_007 0.250 at the first draw, 11_002 0.038: under the bar), both in turn keep each part's better one.
+    The second is tried only after the first realised the structure (:func:`polycubenet.pipeline.pull_back_learned`)."""
     out = [config]
     if config.planar_patches:
         out.append(dataclasses.replace(config, planar_patches=False))

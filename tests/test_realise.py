@@ -352,3 +352,40 @@ def test_the_map_and_the_rest_in_two_calls_give_what_one_call_gives(slanted_l):
     with pytest.raises(ValueError, match="first of learned_maps"):
         pull_back_learned(poly, identity, V, F, PipelineConfig(target_hexes=1500, learned_maps=("exact", "registration")),
                           phase="map")
+
+
+def test_the_second_labelling_is_tried_only_after_the_first_realised_the_structure(slanted_l, monkeypatch):
+    """A labelling whose flattened part does not bound the learned structure ends the realisation (the other
+    labelling is not flattened too); one that realised it but whose mesh does not end the chain (under the bar)
+    is followed by the next labelling."""
+    import types
+
+    from polycubenet import pipeline
+    from polycubenet.data import HexMesh
+    from polycubenet.pipeline import PipelineConfig, pull_back_learned
+
+    V, F, poly, _ = slanted_l
+    cfg = PipelineConfig(target_hexes=800, learned_maps=("registration", "exact"),
+                         pullback=PullbackConfig(capture_spots=False))
+    monkeypatch.setattr(pipeline, "pull_back", lambda mesh_pc, *a, **k: HexMesh(
+        mesh_pc.points, mesh_pc.hexes, meta={"valid": True, "sj_min": 0.4, "hausdorff": 0.05}))  # far off: no refined
+    tried = []
+
+    def refused(Vc, F_, p, corr, rc, **kw):
+        tried.append(rc.planar_patches)
+        return None, "the part flattened on the learned labels differs from the learned polycube: 6 cells differ"
+
+    monkeypatch.setattr(pipeline, "learned_map", refused)
+    mesh, _ = pull_back_learned(poly, _Map(lambda P: np.asarray(P, float)), V, F, cfg)
+    assert tried == [True] and mesh.meta["map"].startswith("registration (") and "6 cells differ" in mesh.meta["map"]
+    tried.clear()
+
+    def realised(Vc, F_, p, corr, rc, **kw):
+        tried.append(rc.planar_patches)
+        return types.SimpleNamespace(polycube=p, map=types.SimpleNamespace(meta={"method": "fake"})), None
+
+    monkeypatch.setattr(pipeline, "learned_map", realised)
+    monkeypatch.setattr(pipeline, "_pull_back_classical", lambda mesh_pc, *a, **k: HexMesh(
+        mesh_pc.points, mesh_pc.hexes, meta={"valid": True, "sj_min": 0.1, "hausdorff": 0.001}))  # under the bar
+    pull_back_learned(poly, _Map(lambda P: np.asarray(P, float)), V, F, cfg)
+    assert tried == [True, False]
