@@ -11,7 +11,8 @@ the next draw).  Because every order runs the same units until one ends the chai
 parts; only the seconds differ.  This script meshes each part through the learned source alone (``--polycube
 learned``, 3000 hexes, as ``benchmarks/unseen_parts.py --mesh``), recording each draw's seconds before the
 pull-back (generation, extraction, registration), A and B, and whether each ended the chain, then replays three
-orders on the same records:
+orders on the same records (each B also records its mesh's minimum scaled Jacobian and distance to the part,
+``b_sj`` / ``b_off`` and ``b_rf_sj`` / ``b_rf_off``, to compare what the orders keep):
 
 * ``now``: A1 B1 A2 B2 ...
 * ``defer``: every draw's A first (A1 A2 ...), then the B of each draw that gave a mesh, in draw order;
@@ -99,12 +100,14 @@ def record_part(path: Path, checkpoint: str, steps: int) -> list[dict]:
         row["b"], row["b_end"], row["b_map"] = round(time.perf_counter() - t0, 2), ends_chain(rest.meta, cfg.min_sj), \
             rest.meta.get("map")
         row["b_planar"] = (rest.meta.get("realised") or {}).get("planar_patches")  # which labelling realised it
+        row["b_sj"], row["b_off"] = rest.meta.get("sj_min"), rest.meta.get("hausdorff")
         if row["near"]:  # the refined map before the realisation (the only steps a near miss adds)
             rf = dataclasses.replace(c, learned_maps=("registration", "refined", "exact"))
             t0 = time.perf_counter()
             rest, _ = pull_back_learned(poly, corr, Vc, F, rf, phase="rest", prior=first, **kw)
             row["b_rf"], row["b_rf_end"], row["b_rf_map"] = round(time.perf_counter() - t0, 2), \
                 ends_chain(rest.meta, cfg.min_sj), rest.meta.get("map")
+            row["b_rf_sj"], row["b_rf_off"] = rest.meta.get("sj_min"), rest.meta.get("hausdorff")
     return out
 
 
