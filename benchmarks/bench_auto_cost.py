@@ -73,7 +73,7 @@ def run_mode(mode: str, args, res: dict, walls: dict) -> None:
     wall, m = run_cli(mode, args.parts, args.hexes, extra)
     walls[mode].append(wall)
     rows = m["parts"]
-    res[mode] = {"wall_s": round(wall, 1), "meshed": sum(r["status"] == "meshed" for r in rows),
+    res[mode] = {"meshed": sum(r["status"] == "meshed" for r in rows),
                  "valid": sum(bool((r.get("quality") or {}).get("valid")) for r in rows),
                  "rejected_polycube_s": m["last_run"].get("rejected_polycube_seconds"),
                  "rows": [{"name": r["name"], "status": r["status"], "provenance": r.get("provenance"),

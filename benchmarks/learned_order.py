@@ -50,16 +50,13 @@ def record_part(path: Path, checkpoint: str, steps: int) -> list[dict]:
     """One dict per learned draw of ``path``: ``pre`` seconds (generation to registration and partition), ``extract``
     (None, or why the polycube was rejected), ``a`` / ``b`` seconds, ``a_end`` / ``b_end`` (the unit's mesh ends the
     chain), ``near`` (A's mesh is a near miss); ``b`` None where it was not run."""
-    import numpy as np
-
     from polycubenet.errors import PolycubeError
     from polycubenet.frame import canonicalize
     from polycubenet.inference import ModelSource
     from polycubenet.io import load_part
     from polycubenet.pipeline import (PipelineConfig, _polycube_stages, near_miss, own_diagonal, partition_polycube,
-                                      pull_back_learned, source_chain)
+                                      pull_back_learned, register_cloud, source_chain)
     from polycubenet.policy import ends_chain, extraction_config, source_config
-    from polycubenet.registration import align
     from polycubenet.sampling import poisson_disk
 
     cfg = PipelineConfig(polycube="learned", target_hexes=3000)
@@ -80,9 +77,7 @@ def record_part(path: Path, checkpoint: str, steps: int) -> list[dict]:
         except PolycubeError as exc:
             row["pre"], row["extract"] = round(time.perf_counter() - t0, 2), str(exc)[:200]
             continue
-        rng = np.random.default_rng(cfg.seed + 5)
-        sub = rng.choice(len(P), size=min(cfg.n_register, len(P)), replace=False)
-        corr = align(sample, P[sub], N[sub])
+        corr = register_cloud(sample, P, N, cfg)
         c = source_config(label, cfg)
         mesh_pc = partition_polycube(poly, c)
         row["pre"] = round(time.perf_counter() - t0, 2)

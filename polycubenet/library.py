@@ -42,7 +42,7 @@ import numpy as np
 from .atomic import load_npz, save_npz, write_json, write_text
 from .data import HexMesh, Part, Polycube, PolycubeCloud, SurfaceSample
 from .errors import PolycubeError
-from .pipeline import OracleSource, PartResult, PipelineConfig
+from .pipeline import OracleSource, PartResult, PipelineConfig, register_cloud
 from .policy import draw_anchors, draw_seed, draw_steps, draw_turn, extraction_config, refinement, source_config, under_bar
 
 #: part files the library reads (``polycubenet.io.load_part``)
@@ -484,18 +484,14 @@ def _extracted_polycube(arrays: dict, meta: dict) -> Polycube:
 
 
 def register(extracted: str | os.PathLike, loaded: str | os.PathLike, dest: str | os.PathLike, config: PipelineConfig) -> Path:
-    """Rigid + CPD registration of the cleaned cloud to the part sample (``registration.align``)."""
-    from .registration import align
-
+    """Rigid + CPD registration of the cleaned cloud to the part sample (:func:`polycubenet.pipeline.register_cloud`)."""
     arrays, _ = _load_arrays(extracted)
     if all(k in arrays for k in _EXACT_MAP):
         # the classical polycube knows its map to the part exactly: no registration
         return _save_arrays(dest, {"method": "classical exact map"}, **{k: arrays[k] for k in _EXACT_MAP})
     P, N, _, _ = read_extracted(extracted)
     _, sample, _, _ = read_loaded(loaded)
-    rng = np.random.default_rng(config.seed + 5)
-    sub = rng.choice(len(P), size=min(config.n_register, len(P)), replace=False)
-    return align(sample, P[sub], N[sub]).save(dest)
+    return register_cloud(sample, P, N, config).save(dest)
 
 
 def partition_pullback(extracted: str | os.PathLike, corr: str | os.PathLike, loaded: str | os.PathLike,

@@ -355,9 +355,7 @@ def mesh_surface(
                 if hasattr(cloud, "correspondence"):  # classical and voxel polycubes know their map exactly
                     corr = cloud.correspondence()
                 else:
-                    rng = np.random.default_rng(config.seed + 5)
-                    sub = rng.choice(len(P), size=min(config.n_register, len(P)), replace=False)
-                    corr = align(sample, P[sub], N[sub])
+                    corr = register_cloud(sample, P, N, config)
             cfg = source_config(label, config)
             with clock("partition"):
                 mesh_pc = partition_polycube(poly, cfg)
@@ -418,6 +416,15 @@ def _polycube_stages(source, sample, Vc, F, genus, config, name, clock, res):
     res.polycube = poly
     A = None if getattr(cloud, "anchors", None) is None else np.asarray(cloud.anchors, float)[keep]
     return cloud, P, N, A, poly
+
+
+def register_cloud(sample: SurfaceSample, P: np.ndarray, N: np.ndarray, config: PipelineConfig):
+    """The registration of a generated cloud's filtered points ``(P, N)`` onto the part's samples (both drivers
+    call this): rigid + CPD (:func:`polycubenet.registration.align`) on ``config.n_register`` of the points,
+    drawn with the run's seed."""
+    rng = np.random.default_rng(config.seed + 5)
+    sub = rng.choice(len(P), size=min(config.n_register, len(P)), replace=False)
+    return align(sample, P[sub], N[sub])
 
 
 def clean_cloud(cloud: PolycubeCloud, config: PipelineConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
