@@ -65,8 +65,9 @@ STAGE_VERSIONS = {
     # 2: classical pullback as in pipeline.mesh_surface; 3: sj_terms by operators; 4: realise.py;
     # 5: no-pillow retry; 6: uncovered spots mended (pullback.mend_spots); 7: no mend past capture_max (4 %)
     # 8: a few poor hexes eased with surface slack (pullback.ease_poor_hexes); 9: no second labelling after a
-    # realisation whose flattened part does not bound the learned structure
-    "pullback": "9",
+    # realisation whose flattened part does not bound the learned structure; 10: a learned draw's file is its
+    # registration map's mesh alone, the rest of its pull-back a second file (policy.run_chain decides when)
+    "pullback": "10",
     "export": "1",
 }
 #: stage names in pipeline order (what ``stage reached`` in the manifest refers to)
@@ -495,12 +496,14 @@ def register(extracted: str | os.PathLike, loaded: str | os.PathLike, dest: str 
 
 
 def partition_pullback(extracted: str | os.PathLike, corr: str | os.PathLike, loaded: str | os.PathLike,
-                       dest: str | os.PathLike, config: PipelineConfig) -> Path:
+                       dest: str | os.PathLike, config: PipelineConfig, phase: str = "all",
+                       prior: str | os.PathLike | None = None) -> Path:
     """Partition the polycube into hexes (at ``config``'s size: the source's own,
     :func:`polycubenet.policy.source_config`) and pull them back onto the part (canonical frame); a learned
     polycube as :func:`polycubenet.pipeline.pull_back_learned` does (the steps of ``config.learned_maps``: realised
     exactly, or through the refined map, when the registration's mesh would not end the chain; a realised mesh's
-    file carries the realised polycube in its meta)."""
+    file carries the realised polycube in its meta).  ``phase`` and ``prior`` (a ``"map"`` phase's file, for
+    ``"rest"``): :func:`~polycubenet.pipeline.pull_back_learned`'s, for a learned polycube only."""
     from .registration import Correspondence
 
     from .pipeline import _pull_back_classical, own_diagonal, partition_polycube, pull_back_learned
@@ -515,7 +518,8 @@ def partition_pullback(extracted: str | os.PathLike, corr: str | os.PathLike, lo
         return _pull_back_classical(partition_polycube(poly, config), _surface_map(arrays), part.vertices, part.faces,
                                     config, diagonal).save(dest)
     mesh, _ = pull_back_learned(poly, Correspondence.load(corr), part.vertices, part.faces, config, diagonal,
-                                lmeta.get("name"), anchored=anchored, part_points=sample.points)
+                                lmeta.get("name"), anchored=anchored, part_points=sample.points, phase=phase,
+                                prior=None if prior is None else HexMesh.load(prior))
     return mesh.save(dest)
 
 

@@ -69,6 +69,7 @@ from .frame import Transform, canonicalize
 from .hexmesh import partition
 from .polycube import polycube_surface
 from .policy import MODES as POLYCUBE_MODES
+from .policy import near_miss as policy_near_miss
 from .policy import DENSER_HEXES, Attempt, denser_config, distance_to_part, ends_chain, error_reason, extraction_config, invalid_mesh_reason, mesh_rank, refinement, run_chain, source_config, source_label, source_names  # noqa: F401
 from .pullback import PullbackConfig, mend_spots, pull_back, worth_retry
 from .quality import QualityReport, quality_report
@@ -359,15 +360,28 @@ def mesh_surface(
             cfg = source_config(label, config)
             with clock("partition"):
                 mesh_pc = partition_polycube(poly, cfg)
+            learned = not hasattr(cloud, "correspondence")
+            split = learned and learned_phases(cfg)
+            kw = dict(anchored=None if A is None else (P, N, A), part_points=sample.points)
             with clock("pullback"):
-                if hasattr(cloud, "correspondence"):
+                if not learned:
                     mesh_c = _pull_back_classical(mesh_pc, corr, Vc, F, config, own_diagonal(Vc, T))
                 else:
                     mesh_c, poly = pull_back_learned(poly, corr, Vc, F, cfg, own_diagonal(Vc, T), name, mesh_pc,
-                                                     anchored=None if A is None else (P, N, A),
-                                                     part_points=sample.points)
-            return Attempt(label, dict(mesh_c.meta), payload=(cloud, poly, mesh_c), seconds=tracker.seconds,
-                           label=source_label(label))
+                                                     phase="map" if split else "all", **kw)
+            att = Attempt(label, dict(mesh_c.meta), payload=(cloud, poly, mesh_c), seconds=dict(tracker.seconds),
+                          label=source_label(label))
+            if split:  # the policy decides when the draw's further pull-back steps run (policy.run_chain)
+                def rest(prior=mesh_c, poly=poly) -> Attempt:
+                    t0 = time.perf_counter()
+                    m, used = pull_back_learned(poly, corr, Vc, F, cfg, own_diagonal(Vc, T), name, mesh_pc,
+                                                phase="rest", prior=prior, **kw)
+                    seconds = {**att.seconds, "pullback": att.seconds.get("pullback", 0.0) + time.perf_counter() - t0}
+                    return Attempt(label, dict(m.meta), payload=(cloud, used, m), seconds=seconds,
+                                   label=source_label(label))
+
+                att.rest = rest
+            return att
 
         outcome = run_chain(list(chain), attempt, min_sj=config.min_sj)
         clock.timings, clock.tracker = timings, None
@@ -586,6 +600,13 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
     return best, used
 
 
+def learned_phases(config: PipelineConfig) -> bool:
+    """Whether a learned draw's pull-back runs as two calls, its registration map's mesh first and the rest when
+    the policy says (:func:`pull_back_learned`'s ``phase``; :func:`polycubenet.policy.run_chain`): when
+    ``config.learned_maps`` starts with the registration's map (the default)."""
+    return config.learned_maps[0] == "registration"
+
+
 def denser_worth(mesh: HexMesh | None, maps: dict) -> bool:
     """Whether the best learned mesh so far is pulled back once more through :data:`~polycubenet.policy.DENSER_HEXES`
     times the hexes (:func:`pull_back_learned`): a near miss (:func:`near_miss`) that is off the part, not under the
@@ -599,24 +620,11 @@ def denser_worth(mesh: HexMesh | None, maps: dict) -> bool:
             and distance_to_part(mesh.meta) > tol.HAUSDORFF_REL_MAX)
 
 
-#: the refined map (:func:`polycubenet.registration.refine`) is fitted and tried only after a near miss: a valid
-#: mesh so far (the registration's, or a realised one) at most this many times the faithfulness bar
-#: (:data:`polycubenet.tol.HAUSDORFF_REL_MAX`) off the part.  A finer field mends a local misfit; it does not
-#: untangle a folded structure or find a missing feature.  Session 42, the learned source alone, ungated: the two
-#: parts it meshed on the dev sets (machined_61_000, 67_011) were 1.75 and 1.66 % off through the registration
-#: alone; where it was kept but failed, the registration's mesh was mostly not valid or 2.5-7 % off
-REFINE_NEAR_MISS = 2.0
-
-
 def near_miss(mesh: HexMesh | None) -> bool:
-    """Whether ``mesh`` (the best learned mesh so far) is valid and at most :data:`REFINE_NEAR_MISS` times the
-    faithfulness bar off the part: the refined map is worth its fit only then."""
-    from . import tol
-
-    if mesh is None or not mesh.meta.get("valid"):
-        return False
-    d = distance_to_part(mesh.meta)
-    return d is not None and d <= REFINE_NEAR_MISS * tol.HAUSDORFF_REL_MAX
+    """Whether ``mesh`` (the best learned mesh so far) is a near miss (:func:`polycubenet.policy.near_miss`: valid,
+    at most :data:`~polycubenet.policy.REFINE_NEAR_MISS` times the faithfulness bar off the part): the refined map
+    is worth its fit only then."""
+    return mesh is not None and policy_near_miss(mesh.meta)
 
 
 #: the maps ``PipelineConfig.learned_maps`` may name

@@ -294,6 +294,25 @@ def mesh_rank(meta: dict, min_sj: float | None = None) -> tuple:
     return (valid, true_to_part, above, sj, 0.0)
 
 
+#: the refined map (:func:`polycubenet.registration.refine`) is fitted and tried only after a near miss: a valid
+#: mesh so far (the registration's, or a realised one) at most this many times the faithfulness bar
+#: (:data:`polycubenet.tol.HAUSDORFF_REL_MAX`) off the part.  A finer field mends a local misfit; it does not
+#: untangle a folded structure or find a missing feature.  Session 42, the learned source alone, ungated: the two
+#: parts it meshed on the dev sets (machined_61_000, 67_011) were 1.75 and 1.66 % off through the registration
+#: alone; where it was kept but failed, the registration's mesh was mostly not valid or 2.5-7 % off.  A learned
+#: draw's further pull-back steps also run at once only after a near miss (:func:`run_chain`)
+REFINE_NEAR_MISS = 2.0
+
+
+def near_miss(quality: dict | None) -> bool:
+    """Whether a pulled-back mesh (``HexMesh.meta`` or a quality dict) is valid and at most
+    :data:`REFINE_NEAR_MISS` times the faithfulness bar off the part (:func:`distance_to_part`)."""
+    if not quality or not quality.get("valid"):
+        return False
+    d = distance_to_part(quality)
+    return d is not None and d <= REFINE_NEAR_MISS * tol.HAUSDORFF_REL_MAX
+
+
 def ends_chain(quality: dict, min_sj: float | None) -> bool:
     """Whether a pulled-back mesh (``HexMesh.meta`` or a quality dict) ends the chain: valid, faithful
     (:func:`faithful`) and not under the quality bar ``min_sj``."""
@@ -325,13 +344,16 @@ def error_reason(exc: BaseException) -> str:
 class Attempt:
     """One source's pulled-back mesh: ``quality`` has at least ``valid`` and ``sj_min``;
     ``payload`` is whatever the driver needs to export it; ``label`` names it in reasons
-    (default: the source)."""
+    (default: the source).  ``rest``: for a learned draw whose mesh so far is its registration map's alone
+    (:func:`polycubenet.pipeline.pull_back_learned`, ``phase="map"``), the call that runs the draw's further
+    pull-back steps and returns the finished attempt (seconds added); :func:`run_chain` decides when."""
 
     source: str
     quality: dict
     payload: Any = None
     seconds: dict = dataclasses.field(default_factory=dict)
     label: str | None = None
+    rest: Callable[[], "Attempt"] | None = None
 
 
 @dataclasses.dataclass
@@ -368,6 +390,21 @@ def below_bar_reason(label: str, meta: dict, bar: float) -> str:
             "the next polycube was tried and the better mesh kept")
 
 
+def defers(quality: dict, later: list[str]) -> bool:
+    """Whether a learned draw whose mesh so far (``quality``, its registration map's) does not end the chain
+    leaves the rest of its pull-back (the exact realisation, the refined map, the mend, the denser pull-back:
+    :func:`polycubenet.pipeline.pull_back_learned`) until the later learned draws among ``later`` (the sources
+    after it) have their own mesh so far: when that mesh is not a near miss (:func:`near_miss`) and such a draw
+    follows.  A near miss is where the rest pays (a local misfit, the partition's); a mesh farther off is mostly a
+    structure the rest cannot mend, and another draw's registration map is cheaper than the realisation.
+    Session 57, the examples with the 118.30 h continue file: stepped_shaft's first two draws 3.4 and 2.8 %
+    off, their rests 43 s refused, the third draw's map within the bar in 4 s
+    (``benchmarks/results/s57_bench_auto_cost_C118.json``); session 56's replay of the 114.15 h file's draws
+    (``benchmarks/learned_order.py``, order ``defer-far``): learned seconds -4 and -9 % on the dev machined sets,
+    -2 % on turned 5, the same on the examples, the same parts meshed."""
+    return not near_miss(quality) and any(refinement(s)[0] == "learned" for s in later)
+
+
 def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt],
               min_sj: float | None = None) -> Outcome:
     """Try ``sources`` in order with the policy of this module (see the module docstring).
@@ -376,6 +413,10 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
     and adding stage seconds to ``tracker.seconds``; it returns an :class:`Attempt` or raises.
     A voxel refinement (``voxel+K``) is tried only when the source just before it gave a mesh;
     the model's further draws (``learned+K``) whenever the draw before is left.
+    A learned draw's attempt may leave the rest of its pull-back for later (:attr:`Attempt.rest`): when its
+    mesh so far does not end the chain, the rest runs at once after a near miss (:func:`near_miss`) and when no
+    later learned draw follows; otherwise it waits until every later draw's own mesh so far is in, the waiting
+    ones then in draw order, before the next kind of source (:func:`defers`).
     An error that :func:`leaves_source` does not cover is raised as it is, with
     ``exc.stage`` and ``exc.source`` set, after ``exc.fallback_reason`` records the sources
     left before it.
@@ -388,48 +429,88 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
     attempts: list[Attempt] = []
     chosen: Attempt | None = None
     last_error: tuple | None = None
+    waiting: list[Attempt] = []  # learned draws whose rest waits (draw order)
 
     def reject(seconds: dict) -> None:
         for k, v in seconds.items():
             rejected[k] = rejected.get(k, 0.0) + float(v or 0.0)
 
+    def failed(src: str, stage: str, exc: BaseException) -> None:
+        """Record why a source was left by an error; raise one no source may be left by."""
+        exc.stage = getattr(exc, "stage", None) or stage
+        exc.source = src
+        if not leaves_source(src, exc):
+            exc.fallback_reason = "; ".join(reasons) or None
+            raise exc
+        reasons.append(f"{source_label(src)} polycube rejected at {exc.stage}: {error_reason(exc)}")
+
+    def finished(att: Attempt) -> Attempt | None:
+        """``att`` with its rest run; None when the rest raised (the draw left as an attempt that raised is)."""
+        nonlocal last_error
+        try:
+            return att.rest()
+        except BaseException as exc:
+            failed(att.source, "pullback", exc)
+            reject(att.seconds)
+            last_error = (exc, att.source)
+            return None
+
+    def settle(att: Attempt, last: bool) -> bool:
+        """Take a finished attempt in; True when it ends the chain."""
+        nonlocal chosen
+        attempts.append(att)
+        if ends_chain(att.quality, min_sj) or last:
+            chosen = att
+            return True
+        candidates.append(att)
+        label = att.label or source_label(att.source)
+        if not att.quality.get("valid"):
+            why = invalid_mesh_reason(label, att.quality)
+        elif not faithful(att.quality):
+            why = unfaithful_reason(label, att.quality)
+        else:
+            why = below_bar_reason(label, att.quality, min_sj)
+        reasons.append(f"pullback: {why}")
+        reject(att.seconds)
+        return False
+
+    def run_waiting() -> bool:
+        while waiting:
+            att = finished(waiting.pop(0))
+            if att is not None and settle(att, last=False):
+                return True
+        return False
+
     meshed: set = set()  # the sources that gave a mesh
     for i, src in enumerate(sources):
         last = i == len(sources) - 1
         base, k = refinement(src)
+        if waiting and base != "learned" and run_waiting():
+            break
         if base == "voxel" and k and (i == 0 or sources[i - 1] not in meshed):
             continue  # its coarser voxel polycube gave no mesh: a finer one is no answer to that
         tracker = StageTracker()
         try:
             att = attempt(src, tracker)
         except BaseException as exc:
-            exc.stage = getattr(exc, "stage", None) or tracker.stage
-            exc.source = src
-            if not leaves_source(src, exc):
-                exc.fallback_reason = "; ".join(reasons) or None
-                raise
+            failed(src, tracker.stage, exc)
             reject(tracker.seconds)
-            reasons.append(f"{source_label(src)} polycube rejected at {tracker.stage}: {error_reason(exc)}")
             last_error = (exc, src)
             continue
         if not att.seconds:
             att.seconds = dict(tracker.seconds)
-        attempts.append(att)
         meshed.add(src)
-        off = bool(att.quality.get("valid")) and not faithful(att.quality)
-        if ends_chain(att.quality, min_sj) or last:
-            chosen = att
+        if att.rest is not None and not ends_chain(att.quality, min_sj):
+            if defers(att.quality, sources[i + 1:]):
+                waiting.append(att)
+                continue
+            att = finished(att)
+            if att is None:
+                continue
+        if settle(att, last and not waiting):
             break
-        candidates.append(att)
-        label = att.label or source_label(src)
-        if not att.quality.get("valid"):
-            why = invalid_mesh_reason(label, att.quality)
-        elif off:
-            why = unfaithful_reason(label, att.quality)
-        else:
-            why = below_bar_reason(label, att.quality, min_sj)
-        reasons.append(f"pullback: {why}")
-        reject(att.seconds)
+    else:
+        run_waiting()
     pool = candidates + ([chosen] if chosen is not None and chosen not in candidates else [])
     if not pool:  # every source was rejected before it gave a mesh
         exc, src = last_error

@@ -62,8 +62,13 @@ CPD_BETA = 0.5
 CPD_LAMBDA = 300.0
 #: default CPD outlier weight w (uniform component of the mixture)
 CPD_W = 0.1
-#: default number of moving points each fixed point is compared with in the E-step
-CPD_K = 32
+#: default number of moving points each fixed point is compared with in the E-step (its KD-tree query is most of
+#: the registration's time).  Session 57, generated clouds of the 118.30 h continue file registered at 32, 16 and
+#: 8 (``benchmarks/cpd_neighbours.py``, the examples and never-seen turned 5 and machined 103): 16 takes 0.69-0.72
+#: of 32's seconds and its map's mesh ends the chain on as many parts (8 / 10, 4 / 15, 7 / 15; 8 loses 2 turned
+#: parts); the maps mostly within 0.1 % of the diagonal of 32's, a few settle elsewhere (up to 2.4 %) with meshes
+#: as often within the bar (``benchmarks/results/s57_cpd_neighbours_C118.json``)
+CPD_K = 16
 #: CPD runs a coarse level of this many points first when a cloud has more than twice as many
 CPD_COARSE = 1024
 #: auto landmarks: farthest-point sampling until every moving point is within

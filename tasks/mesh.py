@@ -79,9 +79,11 @@ def register(extracted: str, loaded: str, dest: str, key: str, config: PipelineC
 
 @task(**task_options("pullback"))
 def partition_pullback(extracted: str, corr: str, loaded: str, dest: str, key: str, config: PipelineConfig,
-                       name: str = "") -> dict:
-    """Regular partition of the polycube, pulled back onto the part."""
-    return _record("pullback", dest, lambda: library.partition_pullback(extracted, corr, loaded, dest, config))
+                       name: str = "", phase: str = "all", prior: str | None = None) -> dict:
+    """Regular partition of the polycube, pulled back onto the part (a learned draw's in two phases:
+    :func:`polycubenet.library.partition_pullback`)."""
+    return _record("pullback", dest, lambda: library.partition_pullback(extracted, corr, loaded, dest, config,
+                                                                        phase=phase, prior=prior))
 
 
 @task(**task_options("export"))
@@ -149,6 +151,7 @@ def _chain(state, name, path, loaded, sources, keys, paths, config, formats, out
     """The body of :func:`mesh_chain` (``state["stage"]`` follows the stage reached): each source's
     stages as tasks, the choice between sources by :func:`polycubenet.policy.run_chain`."""
     from polycubenet.errors import PolycubeError
+    from polycubenet.pipeline import learned_phases
     from polycubenet.policy import Attempt, extraction_config, run_chain, source_config, source_label
 
     from .common import FINAL_ERRORS
@@ -184,10 +187,29 @@ def _chain(state, name, path, loaded, sources, keys, paths, config, formats, out
             config=extraction_config(src, config))
         run("register", register, src, tracker, extracted=att["extract"]["path"], loaded=loaded, dest=p["register"],
             config=config)
+        cfg = source_config(src, config)
+        split = src.startswith("learned") and learned_phases(cfg)
         run("pullback", partition_pullback, src, tracker, extracted=att["extract"]["path"],
-            corr=att["register"]["path"], loaded=loaded, dest=p["pullback"], config=source_config(src, config))
-        return Attempt(src, library.pullback_quality(att["pullback"]["path"]), payload=att,
-                       seconds=dict(tracker.seconds), label=source_label(src))
+            corr=att["register"]["path"], loaded=loaded, dest=p["pullback"], config=cfg,
+            phase="map" if split else "all")
+        out = Attempt(src, library.pullback_quality(att["pullback"]["path"]), payload=att,
+                      seconds=dict(tracker.seconds), label=source_label(src))
+        if split:  # the draw's further pull-back steps, when the policy says (policy.run_chain)
+            out.rest = lambda: rest_of(src, out, cfg)
+        return out
+
+    def rest_of(src: str, first: Attempt, cfg) -> Attempt:
+        att, dest = dict(first.payload), Path(paths[src]["pullback"])
+        state["stage"] = "pullback"
+        dest = dest.with_name(f"{dest.stem}-rest{dest.suffix}")
+        key = f"{keys[src]['pullback']}-rest"
+        t = partition_pullback.with_options(result_storage=storage, refresh_cache=not dest.exists())
+        rec = t(key=key, name=name, extracted=att["extract"]["path"], corr=att["register"]["path"], loaded=loaded,
+                dest=str(dest), config=cfg, phase="rest", prior=att["pullback"]["path"])
+        att["pullback"] = records[src]["pullback"] = rec
+        seconds = {**first.seconds, "pullback": first.seconds.get("pullback", 0.0) + float(rec.get("seconds") or 0.0)}
+        return Attempt(src, library.pullback_quality(rec["path"]), payload=att, seconds=seconds,
+                       label=source_label(src))
 
     def failed(stage: str, exc: BaseException, source: str, reasons) -> dict:
         return {"status": "failed", "stage": stage, "error": f"{type(exc).__name__}: {exc}", "source": source,

@@ -636,6 +636,49 @@ def test_learned_batches_then_classical_fallback(prefect_harness, part_lib, tiny
     assert "second draw" not in _rows(res)[f"synth-{GOOD[0]}"]["fallback"]
 
 
+def test_a_learned_draw_far_off_waits_and_its_rest_is_a_stage_of_its_own(prefect_harness, part_lib, tiny_checkpoint,
+                                                                           tmp_path, monkeypatch):
+    """A learned draw whose registration map's mesh is far off the part (here: said to be 3.4 % off) leaves the
+    rest of its pull-back until the later draws have theirs (:func:`polycubenet.policy.defers`); the rest then
+    runs as a stage of its own, with its own file next to the map's, and its mesh is the one exported.  The
+    second draw is the part's sidecar labelled as learned (the tiny model's draws are rejected at extraction)."""
+    _fake_sources(monkeypatch)
+    real_make_source = library.make_source
+
+    def second_draw_is_the_sidecar(kind, part_path, transform, **model):
+        if kind == "learned+1":
+            src = library.SidecarOracle(library.sidecar_path(part_path), transform)
+
+            def learned(sample, V, F, config):
+                cloud = src(sample, V, F, config)
+                cloud.meta["provenance"] = "learned"
+                return cloud
+
+            return learned
+        return real_make_source(kind, part_path, transform, **model)
+
+    monkeypatch.setattr(library, "make_source", second_draw_is_the_sidecar)
+    real_quality, seen = library.pullback_quality, []
+
+    def quality(path):
+        seen.append(Path(path).name)
+        q = real_quality(path)
+        return {**q, "hausdorff": 0.034} if len(seen) == 1 else q  # the second draw's map: far off
+
+    monkeypatch.setattr(library, "pullback_quality", quality)
+    state, res = _mesh([part_lib / f"synth-{GOOD[0]}.stl"], tmp_path / "out", polycube="auto",
+                       checkpoint=str(tiny_checkpoint), steps=2)
+    assert state.is_completed()
+    row = res["rows"][0]
+    assert row["status"] == "meshed" and row["provenance"] == "learned", row
+    # the map's file, then (after the third and fourth draws, rejected at extraction) the rest's
+    assert len(seen) == 2 and seen[1] == seen[0].replace(".npz", "-rest.npz")
+    assert "learned (draw 3, 1 step, seed +1) polycube rejected at extract" in row["fallback"]
+    assert "learned (draw 2" not in row["fallback"]
+    rest = next((tmp_path / "out" / ".work").rglob("pullback-*-rest.npz"))
+    assert library.HexMesh.load(rest).meta["valid"]
+
+
 def _fake_sources(monkeypatch):
     """``classical``: the part's sidecar relabelled (fast); ``voxel``: gives up."""
     real_make_source = library.make_source

@@ -283,3 +283,86 @@ def test_when_no_mesh_follows_the_part_the_closest_one_above_the_bar_is_kept():
         {"valid": True, "sj_min": 0.3, "hausdorff": 0.0001})
     assert policy.mesh_rank({"valid": True, "sj_min": 0.01, "hausdorff": 0.5}) > policy.mesh_rank(
         {"valid": False, "sj_min": -0.1, "hausdorff": 0.0})
+
+
+def _two_phase(script: dict):
+    """``attempt`` whose learned draws give ``script[source] = (mesh so far, rest)``: the quality of the draw's
+    registration-map mesh, and that of its finished pull-back (an exception: the rest raises it); any other
+    source ``script[source]`` as :func:`_scripted`.  ``calls`` records ``source`` and ``source:rest`` in order."""
+    calls = []
+
+    def attempt(src, tracker):
+        calls.append(src)
+        tracker.seconds["polycube"] = 1.0
+        tracker.seconds["pullback"] = 2.0
+        if not src.startswith("learned"):
+            return Attempt(src, script[src], payload=src, seconds=dict(tracker.seconds))
+        first, then = script[src]
+        att = Attempt(src, first, payload=src, seconds=dict(tracker.seconds))
+
+        def rest():
+            calls.append(f"{src}:rest")
+            if isinstance(then, BaseException):
+                raise then
+            return Attempt(src, then, payload=f"{src}:rest", seconds={**att.seconds, "pullback": 5.0})
+
+        att.rest = rest
+        return att
+
+    return attempt, calls
+
+
+FAR = {"valid": True, "sj_min": 0.3, "hausdorff": 0.034}  # stepped_shaft's first draw, 3.4 % off
+NEAR = {"valid": True, "sj_min": 0.3, "hausdorff": 0.0165}  # bushing's, 1.65 % off: a near miss
+GOOD = {"valid": True, "sj_min": 0.3, "hausdorff": 0.005}
+
+
+def test_a_far_miss_waits_for_the_next_draws_and_a_near_miss_finishes_at_once():
+    draws = ["learned", "learned+1", "learned+2", "classical"]
+    # the first draw far off: the second draw's map first; it ends the chain, the first draw's rest never runs
+    attempt, calls = _two_phase({"learned": (FAR, GOOD), "learned+1": (GOOD, GOOD), "learned+2": (GOOD, GOOD),
+                                 "classical": GOOD})
+    out = run_chain(draws, attempt, min_sj=0.2)
+    assert calls == ["learned", "learned+1"] and out.chosen.payload == "learned+1"
+    # a near miss: its rest at once, which ends the chain
+    attempt, calls = _two_phase({"learned": (NEAR, GOOD), "learned+1": (GOOD, GOOD), "learned+2": (GOOD, GOOD),
+                                 "classical": GOOD})
+    out = run_chain(draws, attempt, min_sj=0.2)
+    assert calls == ["learned", "learned:rest"] and out.chosen.payload == "learned:rest"
+    assert out.chosen.seconds["pullback"] == 5.0 and out.rejected_seconds == {}
+
+
+def test_the_waiting_rests_run_in_draw_order_after_the_last_draw_and_before_the_classical_chain():
+    draws = ["learned", "learned+1", "learned+2", "classical"]
+    # every map far off; the last draw has no later draw to wait for: its rest at once, then the waiting ones
+    attempt, calls = _two_phase({"learned": (FAR, FAR), "learned+1": (FAR, GOOD), "learned+2": (FAR, FAR),
+                                 "classical": GOOD})
+    out = run_chain(draws, attempt, min_sj=0.2)
+    assert calls == ["learned", "learned+1", "learned+2", "learned+2:rest", "learned:rest", "learned+1:rest"]
+    assert out.chosen.payload == "learned+1:rest"
+    assert out.rejected_seconds == {"polycube": 2.0, "pullback": 10.0}  # the two finished draws left
+    # no rest ends it: the classical chain after all of them, the best mesh kept
+    attempt, calls = _two_phase({"learned": (FAR, FAR), "learned+1": (FAR, NEAR), "classical": FAR})
+    out = run_chain(["learned", "learned+1", "classical"], attempt, min_sj=0.2)
+    assert calls == ["learned", "learned+1", "learned+1:rest", "learned:rest", "classical"]
+    assert out.chosen.payload == "learned+1:rest"  # the nearest one
+    # the learned draws alone (--polycube learned): the waiting rests run at the end
+    attempt, calls = _two_phase({"learned": (FAR, GOOD), "learned+1": (FAR, FAR)})
+    out = run_chain(["learned", "learned+1"], attempt, min_sj=0.2)
+    assert calls == ["learned", "learned+1", "learned+1:rest", "learned:rest"]
+    assert out.chosen.payload == "learned:rest"
+
+
+def test_a_rest_that_fails_leaves_the_draw_as_any_error_of_its_attempt_does():
+    attempt, calls = _two_phase({"learned": (NEAR, RuntimeError("realisation blew up")), "classical": FAR})
+    out = run_chain(["learned", "classical"], attempt, min_sj=0.2)
+    assert calls == ["learned", "learned:rest", "classical"]
+    assert out.chosen.payload == "classical"  # the draw's mesh so far goes with it
+    assert out.fallback_reason == "learned polycube rejected at pullback: RuntimeError: realisation blew up"
+    assert out.rejected_seconds == {"polycube": 1.0, "pullback": 2.0}
+    # a bad part is final, also when a waiting rest finds it
+    attempt, calls = _two_phase({"learned": (FAR, PartError("the part", "not a closed surface")),
+                                 "learned+1": (FAR, FAR), "classical": GOOD})
+    with pytest.raises(PartError) as err:
+        run_chain(["learned", "learned+1", "classical"], attempt, min_sj=0.2)
+    assert err.value.source == "learned" and err.value.stage == "pullback" and "classical" not in calls

@@ -292,7 +292,7 @@ def test_the_learned_steps_run_in_their_order_and_stop_at_the_first_mesh_that_en
     realisation before the refined map, a realised mesh that ends the chain leaves the refined map unfitted;
     with the refined map first it is fitted and tried before the realisation, but only after a near miss
     (``pipeline.near_miss``): the identity's mesh of the slanted end is far off the part, so it is skipped."""
-    from polycubenet import pipeline, registration
+    from polycubenet import pipeline, policy, registration
     from polycubenet.pipeline import PipelineConfig, pull_back_learned
     from polycubenet.policy import distance_to_part
 
@@ -317,7 +317,7 @@ def test_the_learned_steps_run_in_their_order_and_stop_at_the_first_mesh_that_en
     assert not pipeline.near_miss(alone) and distance_to_part(alone.meta) > 0.02
     mesh, _ = pull_back_learned(poly, identity, V, F, refined_first)
     assert fitted == [] and mesh.meta["map"] == "exact (realised)"
-    monkeypatch.setattr(pipeline, "REFINE_NEAR_MISS", 1e3)  # every valid mesh a near miss
+    monkeypatch.setattr(policy, "REFINE_NEAR_MISS", 1e3)  # every valid mesh a near miss
     mesh, _ = pull_back_learned(poly, identity, V, F, refined_first)
     assert fitted == [refined_first.n_sample]
     assert mesh.meta["map"] in ("refined", "exact (realised)")

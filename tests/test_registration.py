@@ -192,11 +192,15 @@ def test_lowrank_truncated_matches_dense_at_convergence(small_pair):
 def test_torch_backend_matches_numpy(small_pair):
     pytest.importorskip("torch")
     Y, X = small_pair
-    a = cpd_nonrigid(Y, X, max_iter=10, tol_rel=0.0, backend="numpy")
-    b = cpd_nonrigid(Y, X, max_iter=10, tol_rel=0.0, backend="torch", device="cpu")
-    assert b.meta["backend"] == "torch"
-    np.testing.assert_allclose(b.points, a.points, rtol=0, atol=1e-8)
-    assert b.sigma2 == pytest.approx(a.sigma2, rel=1e-8)
+    # the default truncated E-step over a few iterations, and every moving point as a neighbour over more: the
+    # backends agree to round-off at each iteration, and round-off can flip which point is a sample's k-th
+    # nearest when two are almost as near (with k = 16 here at the tenth iteration)
+    for kw in ({"max_iter": 5}, {"max_iter": 10, "k": len(Y)}):
+        a = cpd_nonrigid(Y, X, tol_rel=0.0, backend="numpy", **kw)
+        b = cpd_nonrigid(Y, X, tol_rel=0.0, backend="torch", device="cpu", **kw)
+        assert b.meta["backend"] == "torch"
+        np.testing.assert_allclose(b.points, a.points, rtol=0, atol=1e-8)
+        assert b.sigma2 == pytest.approx(a.sigma2, rel=1e-8)
 
 
 def test_cpd_result_round_trip(tmp_path, small_pair):
