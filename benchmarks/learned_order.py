@@ -6,7 +6,7 @@
 A learned draw that passes extraction costs two units of pull-back work
 (:func:`polycubenet.pipeline.pull_back_learned`'s ``phase``): **A**, its mesh through the registration's map,
 and, when that mesh does not end the chain, **B**, the rest (the exact realisation, the refined map after a near
-miss, the spot mend, the denser pull-back).  Today's policy runs A1 B1 A2 B2 ... (each draw to its end before
+miss, the spot mend, the denser pull-back).  Session 56's policy ran A1 B1 A2 B2 ... (each draw to its end before
 the next draw).  Because every order runs the same units until one ends the chain, every order meshes the same
 parts; only the seconds differ.  This script meshes each part through the learned source alone (``--polycube
 learned``, 3000 hexes, as ``benchmarks/unseen_parts.py --mesh``), recording each draw's seconds before the
@@ -14,11 +14,11 @@ pull-back (generation, extraction, registration), A and B, and whether each ende
 orders on the same records (each B also records its mesh's minimum scaled Jacobian and distance to the part,
 ``b_sj`` / ``b_off`` and ``b_rf_sj`` / ``b_rf_off``, to compare what the orders keep):
 
-* ``now``: A1 B1 A2 B2 ...
+* ``now``: A1 B1 A2 B2 ... (the default until session 57);
 * ``defer``: every draw's A first (A1 A2 ...), then the B of each draw that gave a mesh, in draw order;
 * ``defer-far``: a draw's B right after its A when A's mesh is a near miss
   (:func:`polycubenet.pipeline.near_miss`: valid, at most twice the Hausdorff bar off), otherwise after every
-  later draw's A;
+  later draw's A (the default since session 57: :func:`polycubenet.policy.defers`);
 * ``now-rf`` and ``defer-far-rf``: the same, a near miss's B with the refined map before the exact realisation
   (``learned_maps=("registration", "refined", "exact")``; recorded as ``b_rf`` for near misses only: elsewhere
   the refined map is not tried and B is the same).

@@ -42,6 +42,11 @@ The rules:
   but under ``min_sj`` (the project's quality bar, ``PipelineConfig.min_sj`` = 0.2): the
   next source is tried and the better mesh kept (HexGen rockerarm: the flattening's mesh
   has min SJ 0.187, the voxel polycube's 0.302).
+* **A learned draw's rest**: a learned draw's pull-back is its registration map's mesh first; the rest (the exact
+  realisation, the refined map, the mend, the denser pull-back) runs at once when that mesh is a near miss
+  (:func:`near_miss`) or no later draw follows, otherwise after the later draws' own maps, the waiting draws in
+  order before the classical chain (:func:`defers`): a draw far off mostly has the wrong structure, and the next
+  draw's map is cheaper than its realisation.
 * **The kept mesh**: the first valid, faithful one that ends the chain, unless an earlier
   candidate ranks higher (:func:`mesh_rank`: valid first, then faithful, then not under the
   quality bar, then the higher minimum scaled Jacobian, or among meshes off the part the one
@@ -416,7 +421,8 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
     A learned draw's attempt may leave the rest of its pull-back for later (:attr:`Attempt.rest`): when its
     mesh so far does not end the chain, the rest runs at once after a near miss (:func:`near_miss`) and when no
     later learned draw follows; otherwise it waits until every later draw's own mesh so far is in, the waiting
-    ones then in draw order, before the next kind of source (:func:`defers`).
+    ones then in draw order, before the next kind of source (:func:`defers`); a draw still waiting when a later
+    mesh ends the chain is left with its mesh so far, as a candidate, its reason and seconds reported.
     An error that :func:`leaves_source` does not cover is raised as it is, with
     ``exc.stage`` and ``exc.source`` set, after ``exc.fallback_reason`` records the sources
     left before it.
@@ -511,6 +517,8 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
             break
     else:
         run_waiting()
+    for att in waiting:  # left waiting when a later mesh ended the chain: its mesh so far is a candidate
+        settle(att, last=False)
     pool = candidates + ([chosen] if chosen is not None and chosen not in candidates else [])
     if not pool:  # every source was rejected before it gave a mesh
         exc, src = last_error

@@ -324,6 +324,10 @@ def test_a_far_miss_waits_for_the_next_draws_and_a_near_miss_finishes_at_once():
                                  "classical": GOOD})
     out = run_chain(draws, attempt, min_sj=0.2)
     assert calls == ["learned", "learned+1"] and out.chosen.payload == "learned+1"
+    # the waiting draw was left: its reason and seconds are in the run's summary
+    assert out.fallback_reason == ("pullback: the learned polycube's hex mesh is valid but 3.40 % of the diagonal "
+                                   "off the part (bar 1 %): the next polycube was tried and the better mesh kept")
+    assert out.rejected_seconds == {"polycube": 1.0, "pullback": 2.0}
     # a near miss: its rest at once, which ends the chain
     attempt, calls = _two_phase({"learned": (NEAR, GOOD), "learned+1": (GOOD, GOOD), "learned+2": (GOOD, GOOD),
                                  "classical": GOOD})
