@@ -99,8 +99,9 @@ def test_the_flow_stages_carry_each_kept_points_anchor_to_the_pull_back(slanted_
     np.testing.assert_allclose(arrays["anchors"], arrays["points"] + [10.0, 0.0, 0.0])
     seen = {}
 
-    def fake(poly, corr, Vc, F, config, diagonal=None, part=None, partitioned=None, anchored=None, part_points=None):
-        seen["anchored"] = anchored
+    def fake(poly, corr, Vc, F, config, diagonal=None, part=None, partitioned=None, anchored=None, part_points=None,
+             phase="all", prior=None):
+        seen["anchored"], seen["phase"] = anchored, phase
         return HexMesh(np.zeros((8, 3)), np.arange(8)[None], meta={"valid": True}), poly
 
     monkeypatch.setattr(pipeline, "pull_back_learned", fake)
@@ -108,3 +109,4 @@ def test_the_flow_stages_carry_each_kept_points_anchor_to_the_pull_back(slanted_
     library.partition_pullback(ext, corr, loaded, tmp_path / "hex.npz", cfg)
     got = seen["anchored"]
     assert got is not None and np.array_equal(got[2], arrays["anchors"]) and np.array_equal(got[0], arrays["points"])
+    assert seen["phase"] == "all"  # one call unless the flow asks for the map's mesh first
