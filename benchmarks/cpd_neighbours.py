@@ -88,7 +88,7 @@ def record_part(path: Path, checkpoint: str, steps: int, ks: list[int]) -> dict:
 
 
 def main(argv=None) -> int:
-    from unseen_parts import make_parts
+    from unseen_parts import set_paths
 
     from polycubenet.atomic import write_json
     from polycubenet.inference import DEFAULT_CHECKPOINT, resolve_steps
@@ -107,14 +107,7 @@ def main(argv=None) -> int:
     tmp = Path(tempfile.mkdtemp(prefix="cpd-neighbours-"))
     result = {"checkpoint": args.checkpoint, "steps": steps, "ks": args.ks, "sets": {}}
     for spec in args.sets:
-        if spec == "examples":
-            paths = sorted((ROOT / "examples/parts").glob("*.step"))
-        elif Path(spec).is_dir():
-            paths = sorted(Path(spec).glob("*.step"))
-        else:
-            family, seed = spec.split(":")
-            (tmp / spec.replace(":", "_")).mkdir(parents=True)
-            paths = [p for p, _ in make_parts(tmp / spec.replace(":", "_"), args.count, int(seed), family)]
+        paths = set_paths(spec, tmp, args.count)
         print(f"\n{spec}: {len(paths)} parts\n{'part':<22} {'k':>3} {'reg s':>6} {'iters':>5} {'moved max':>9} "
               f"{'p99':>6} {'valid':>5} {'min SJ':>6} {'off %':>6} {'ends':>4}", flush=True)
         parts = []

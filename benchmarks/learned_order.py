@@ -134,7 +134,7 @@ def replay(draws: list[dict], order: str) -> tuple[float, str | None]:
 
 
 def main(argv=None) -> int:
-    from unseen_parts import make_parts
+    from unseen_parts import set_paths
 
     from polycubenet.atomic import write_json
     from polycubenet.inference import DEFAULT_CHECKPOINT, resolve_steps
@@ -152,14 +152,7 @@ def main(argv=None) -> int:
     tmp = Path(tempfile.mkdtemp(prefix="learned-order-"))
     result = {"checkpoint": args.checkpoint, "steps": steps, "orders": ORDERS, "sets": {}}
     for spec in args.sets:
-        if spec == "examples":
-            paths = sorted((ROOT / "examples/parts").glob("*.step"))
-        elif Path(spec).is_dir():
-            paths = sorted(Path(spec).glob("*.step"))
-        else:
-            family, seed = spec.split(":")
-            (tmp / spec.replace(":", "_")).mkdir(parents=True)
-            paths = [p for p, _ in make_parts(tmp / spec.replace(":", "_"), args.count, int(seed), family)]
+        paths = set_paths(spec, tmp, args.count)
         rows = []
         print(f"\n{spec}: {len(paths)} parts\n{'part':<22} {'meshed':>6} " + " ".join(f"{o:>10}" for o in ORDERS)
               + "  ended by (now / defer-far)", flush=True)

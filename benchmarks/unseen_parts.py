@@ -358,6 +358,19 @@ def make_parts(folder: Path, count: int, seed: int, family: str = "blocks") -> l
     return out
 
 
+def set_paths(spec: str, tmp: Path, count: int = 16) -> list[Path]:
+    """The STEP files of a ``--sets`` entry: ``examples`` (``examples/parts/*.step``), a folder of STEP files, or a
+    never-seen ``family:seed`` set of ``count`` parts built into ``tmp`` (:func:`make_parts`)."""
+    if spec == "examples":
+        return sorted((ROOT / "examples/parts").glob("*.step"))
+    if Path(spec).is_dir():
+        return sorted(Path(spec).glob("*.step"))
+    family, seed = spec.split(":")
+    folder = tmp / spec.replace(":", "_")
+    folder.mkdir(parents=True)
+    return [p for p, _ in make_parts(folder, count, int(seed), family)]
+
+
 def meets_bars(r, cfg) -> bool:
     """Whether a ``mesh_part`` result counts: its mesh valid, within the Hausdorff bar of the part
     (:func:`polycubenet.policy.faithful`) and at least the quality bar ``cfg.min_sj``."""

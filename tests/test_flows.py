@@ -647,14 +647,7 @@ def test_a_learned_draw_far_off_waits_and_its_rest_is_a_stage_of_its_own(prefect
 
     def second_draw_is_the_sidecar(kind, part_path, transform, **model):
         if kind == "learned+1":
-            src = library.SidecarOracle(library.sidecar_path(part_path), transform)
-
-            def learned(sample, V, F, config):
-                cloud = src(sample, V, F, config)
-                cloud.meta["provenance"] = "learned"
-                return cloud
-
-            return learned
+            return _sidecar_as("learned", part_path, transform)
         return real_make_source(kind, part_path, transform, **model)
 
     monkeypatch.setattr(library, "make_source", second_draw_is_the_sidecar)
@@ -679,20 +672,25 @@ def test_a_learned_draw_far_off_waits_and_its_rest_is_a_stage_of_its_own(prefect
     assert library.HexMesh.load(rest).meta["valid"]
 
 
+def _sidecar_as(provenance: str, part_path, transform):
+    """A polycube source giving the part's ground-truth sidecar, labelled with ``provenance``."""
+    src = library.SidecarOracle(library.sidecar_path(part_path), transform)
+
+    def source(sample, V, F, config):
+        cloud = src(sample, V, F, config)
+        cloud.meta["provenance"] = provenance
+        return cloud
+
+    return source
+
+
 def _fake_sources(monkeypatch):
     """``classical``: the part's sidecar relabelled (fast); ``voxel``: gives up."""
     real_make_source = library.make_source
 
     def fake_make_source(kind, part_path, transform, **model):
         if kind == "classical":
-            src = library.SidecarOracle(library.sidecar_path(part_path), transform)
-
-            def classical(sample, V, F, config):
-                cloud = src(sample, V, F, config)
-                cloud.meta["provenance"] = "classical"
-                return cloud
-
-            return classical
+            return _sidecar_as("classical", part_path, transform)
         if kind == "voxel":
             def voxel(sample, V, F, config):
                 raise PolycubeError("no voxel polycube in this test")
