@@ -362,20 +362,21 @@ def mesh_surface(
                 mesh_pc = partition_polycube(poly, cfg)
             learned = not hasattr(cloud, "correspondence")
             split = learned and learned_phases(cfg)
+            diagonal = own_diagonal(Vc, T)
             kw = dict(anchored=None if A is None else (P, N, A), part_points=sample.points)
             with clock("pullback"):
                 if not learned:
-                    mesh_c = _pull_back_classical(mesh_pc, corr, Vc, F, config, own_diagonal(Vc, T))
+                    mesh_c = _pull_back_classical(mesh_pc, corr, Vc, F, config, diagonal)
                 else:
-                    mesh_c, poly = pull_back_learned(poly, corr, Vc, F, cfg, own_diagonal(Vc, T), name, mesh_pc,
+                    mesh_c, poly = pull_back_learned(poly, corr, Vc, F, cfg, diagonal, name, mesh_pc,
                                                      phase="map" if split else "all", **kw)
             att = Attempt(label, dict(mesh_c.meta), payload=(cloud, poly, mesh_c), seconds=dict(tracker.seconds),
                           label=source_label(label))
             if split:  # the policy decides when the draw's further pull-back steps run (policy.run_chain)
                 def rest(prior=mesh_c, poly=poly) -> Attempt:
                     t0 = time.perf_counter()
-                    m, used = pull_back_learned(poly, corr, Vc, F, cfg, own_diagonal(Vc, T), name, mesh_pc,
-                                                phase="rest", prior=prior, **kw)
+                    m, used = pull_back_learned(poly, corr, Vc, F, cfg, diagonal, name, mesh_pc, phase="rest",
+                                                prior=prior, **kw)
                     seconds = {**att.seconds, "pullback": att.seconds.get("pullback", 0.0) + time.perf_counter() - t0}
                     return Attempt(label, dict(m.meta), payload=(cloud, used, m), seconds=seconds,
                                    label=source_label(label))

@@ -441,24 +441,25 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
         for k, v in seconds.items():
             rejected[k] = rejected.get(k, 0.0) + float(v or 0.0)
 
-    def failed(src: str, stage: str, exc: BaseException) -> None:
-        """Record why a source was left by an error; raise one no source may be left by."""
+    def failed(src: str, stage: str, exc: BaseException, seconds: dict) -> None:
+        """Leave a source whose attempt (or rest) raised, its ``seconds`` rejected; raise an error no source may
+        be left by."""
+        nonlocal last_error
         exc.stage = getattr(exc, "stage", None) or stage
         exc.source = src
         if not leaves_source(src, exc):
             exc.fallback_reason = "; ".join(reasons) or None
             raise exc
+        reject(seconds)
         reasons.append(f"{source_label(src)} polycube rejected at {exc.stage}: {error_reason(exc)}")
+        last_error = (exc, src)
 
     def finished(att: Attempt) -> Attempt | None:
         """``att`` with its rest run; None when the rest raised (the draw left as an attempt that raised is)."""
-        nonlocal last_error
         try:
             return att.rest()
         except BaseException as exc:
-            failed(att.source, "pullback", exc)
-            reject(att.seconds)
-            last_error = (exc, att.source)
+            failed(att.source, "pullback", exc, att.seconds)
             return None
 
     def settle(att: Attempt, last: bool) -> bool:
@@ -499,9 +500,7 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
         try:
             att = attempt(src, tracker)
         except BaseException as exc:
-            failed(src, tracker.stage, exc)
-            reject(tracker.seconds)
-            last_error = (exc, src)
+            failed(src, tracker.stage, exc, tracker.seconds)
             continue
         if not att.seconds:
             att.seconds = dict(tracker.seconds)

@@ -152,23 +152,25 @@ def _chain(state, name, path, loaded, sources, keys, paths, config, formats, out
     stages as tasks, the choice between sources by :func:`polycubenet.policy.run_chain`."""
     from polycubenet.errors import PolycubeError
     from polycubenet.pipeline import learned_phases
-    from polycubenet.policy import Attempt, extraction_config, run_chain, source_config, source_label
+    from polycubenet.policy import Attempt, StageTracker, extraction_config, run_chain, source_config, source_label
 
     from .common import FINAL_ERRORS
 
     storage = Path(result_storage)
     records: dict = {}  # source -> stage -> record, also for a source whose attempt raised
 
-    def run(stage: str, fn, src: str, tracker, **kw) -> dict:
+    def run(stage: str, fn, src: str, tracker, key_suffix: str = "", **kw) -> dict:
+        """One stage task of ``src`` (``key_suffix``: a second task of the stage, its seconds added to the first's)."""
         state["stage"] = tracker.stage = stage
+        key = keys[src][stage] + key_suffix
         if stage == "export":
-            fresh = library.load_json(Path(kw["out_dir"]) / "result.json").get("key") == keys[src][stage]
+            fresh = library.load_json(Path(kw["out_dir"]) / "result.json").get("key") == key
         else:
             fresh = Path(kw["dest"]).exists()
         t = fn.with_options(result_storage=storage, refresh_cache=not fresh)  # a stale record is refreshed
-        rec = t(key=keys[src][stage], name=name, **kw)
+        rec = t(key=key, name=name, **kw)
         records[src][stage] = rec
-        tracker.seconds[stage] = float(rec.get("seconds") or 0.0)
+        tracker.seconds[stage] = tracker.seconds.get(stage, 0.0) + float(rec.get("seconds") or 0.0)
         return rec
 
     def attempt(src: str, tracker) -> Attempt:
@@ -199,16 +201,14 @@ def _chain(state, name, path, loaded, sources, keys, paths, config, formats, out
         return out
 
     def rest_of(src: str, first: Attempt, cfg) -> Attempt:
-        att, dest = dict(first.payload), Path(paths[src]["pullback"])
-        state["stage"] = "pullback"
-        dest = dest.with_name(f"{dest.stem}-rest{dest.suffix}")
-        key = f"{keys[src]['pullback']}-rest"
-        t = partition_pullback.with_options(result_storage=storage, refresh_cache=not dest.exists())
-        rec = t(key=key, name=name, extracted=att["extract"]["path"], corr=att["register"]["path"], loaded=loaded,
-                dest=str(dest), config=cfg, phase="rest", prior=att["pullback"]["path"])
-        att["pullback"] = records[src]["pullback"] = rec
-        seconds = {**first.seconds, "pullback": first.seconds.get("pullback", 0.0) + float(rec.get("seconds") or 0.0)}
-        return Attempt(src, library.pullback_quality(rec["path"]), payload=att, seconds=seconds,
+        """The rest of a learned draw's pull-back, from its map's file: a second pull-back task and file."""
+        tracker = StageTracker()
+        tracker.seconds = dict(first.seconds)
+        prior, dest = first.payload["pullback"]["path"], Path(paths[src]["pullback"])
+        rec = run("pullback", partition_pullback, src, tracker, key_suffix="-rest",
+                  extracted=first.payload["extract"]["path"], corr=first.payload["register"]["path"], loaded=loaded,
+                  dest=str(dest.with_name(f"{dest.stem}-rest{dest.suffix}")), config=cfg, phase="rest", prior=prior)
+        return Attempt(src, library.pullback_quality(rec["path"]), payload=records[src], seconds=dict(tracker.seconds),
                        label=source_label(src))
 
     def failed(stage: str, exc: BaseException, source: str, reasons) -> dict:
