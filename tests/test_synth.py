@@ -373,6 +373,40 @@ def test_tall_bosses_are_recorded_and_regenerated(tmp_path):
         assert np.array_equal(rec["polycube"].occupancy, again.polycube.occupancy)
 
 
+def test_min_holes_drill_at_least_that_many_holes_and_leave_the_default_stream():
+    """``min_holes``: over the same seeds every block keeps at least that many through-holes (a hole is only
+    attempted, but the base block always has room for two) and the genus rises; 0 gives exactly the polycube
+    the seed gave before the option."""
+    from polycubenet.synth.polycube import random_polycube
+
+    def holes_and_genus(k):
+        holes, genus = [], []
+        for s in range(40):
+            pc = random_polycube(np.random.default_rng([78, s]), style="block", min_holes=k)
+            holes.append(sum(f.kind == "through_hole" for f in pc.features))
+            genus.append(pc.genus)
+        return np.array(holes), np.array(genus)
+
+    (h0, g0), (h2, g2) = holes_and_genus(0), holes_and_genus(2)
+    assert (h0 < 2).sum() >= 10  # without the option many blocks have fewer than two holes
+    assert (h2 >= 2).mean() >= 0.9 and (g2 >= 2).mean() > (g0 >= 2).mean() + 0.2
+    a = random_polycube(np.random.default_rng(5))
+    b = random_polycube(np.random.default_rng(5), min_holes=0)
+    assert np.array_equal(a.occupancy, b.occupancy) and np.allclose(a.xs, b.xs)
+
+
+def test_min_holes_are_recorded_and_regenerated(tmp_path):
+    """``--min-holes`` is in the manifest, and a shard's pair rebuilds from its seed with the option."""
+    rc = synth_main(["--out", str(tmp_path), "--count", "2", "--seed", "6", "--per-shard", "2", "--n-cond", "40",
+                     "--n-target", "40", "--cad-features", "--min-holes", "2", "--no-progress"])
+    assert rc == 0
+    assert json.loads((tmp_path / "dataset.json").read_text())["params"]["min_holes"] == 2
+    shard = load_shard(tmp_path / "shard-00000.npz")
+    for k, rec in enumerate(shard):
+        again = shard.regenerate(k)
+        assert np.array_equal(rec["polycube"].occupancy, again.polycube.occupancy)
+
+
 def test_non_invertible_maps_are_caught():
     lo, hi = -0.5 * np.ones(3), 0.5 * np.ones(3)
     rng = np.random.default_rng(0)

@@ -222,6 +222,7 @@ def make_pair(
     turned: float = 0.0,
     bolt_circles: float = 0.0,
     flanges: float = FLANGES,
+    min_holes: int = 0,
 ) -> SynthPair:
     """Generate one pair from ``seed`` (see the module docstring for the steps).
 
@@ -264,6 +265,9 @@ def make_pair(
     flanges : float in [0, 1], with ``turned``: the share of turned parts with a flange at one end
         (:func:`~polycubenet.synth.polycube.turned_polycube`).  The default
         (:data:`~polycubenet.synth.polycube.FLANGES`): a seed gives the pair it gave before.
+    min_holes : int, the pairs that are not turned parts attempt at least this many through-holes
+        (:func:`~polycubenet.synth.polycube.random_polycube`): genus 2 and more, as drilled machined parts are.
+        0: a seed gives the pair it gave before.
 
     Returns
     -------
@@ -281,7 +285,7 @@ def make_pair(
         if turned > 0 and rng.random() < turned:
             pc = turned_polycube(rng, bolt_circles=bolt_circles, flanges=flanges)
         else:
-            pc = random_polycube(rng, style=style, n_holes=n_holes, tall_bosses=tall_bosses)
+            pc = random_polycube(rng, style=style, n_holes=n_holes, tall_bosses=tall_bosses, min_holes=min_holes)
         body = next((f for f in pc.features if f.kind == "turned"), None)
         V0, Q = polycube_quads(pc.xs, pc.ys, pc.zs, pc.occupancy, h=edge_length)
         lo, hi = pc.bounds

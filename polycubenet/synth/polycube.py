@@ -273,6 +273,7 @@ def random_polycube(
     max_tries: int = 50,
     min_width: float = MIN_WIDTH,
     tall_bosses: bool = False,
+    min_holes: int = 0,
 ) -> RandomPolycube:
     """A random valid polycube, machined-part style.
 
@@ -287,20 +288,24 @@ def random_polycube(
     tall_bosses : bool, more bosses (at least one other feature, bosses twice as likely) and taller ones:
         each end's margin layers 0.6-3 stock widths instead of 0.6 (posts and bosses up to about the
         stock's height, as machined parts have).  Off, the random stream is the one before this option.
+    min_holes : int, with ``n_holes`` None: attempt at least this many through-holes (the random count raised
+        to it), for parts of genus 2 and more, as drilled machined parts are.  0: the random stream is the one
+        before this option.
 
     Returns
     -------
     RandomPolycube, normalized (bounding box centred at 0, diagonal 1)
     """
     for _ in range(max_tries):
-        pc = _random_polycube_once(rng, style, n_holes, min_width, tall_bosses)
+        pc = _random_polycube_once(rng, style, n_holes, min_width, tall_bosses, min_holes)
         if pc is not None:
             return pc
     raise RuntimeError("random_polycube: no valid polycube")  # pragma: no cover - never seen
 
 
 def _random_polycube_once(
-    rng: np.random.Generator, style: str | None, n_holes: int | None, min_width: float, tall_bosses: bool = False
+    rng: np.random.Generator, style: str | None, n_holes: int | None, min_width: float, tall_bosses: bool = False,
+    min_holes: int = 0,
 ) -> RandomPolycube | None:
     if style is None:
         style = str(rng.choice(_STYLES, p=_STYLE_P))
@@ -336,7 +341,7 @@ def _random_polycube_once(
                     break
 
     if n_holes is None:
-        n_holes = int(rng.choice(len(hole_p), p=np.asarray(hole_p) / np.sum(hole_p)))
+        n_holes = max(int(rng.choice(len(hole_p), p=np.asarray(hole_p) / np.sum(hole_p))), int(min_holes))
     thin_axis = int(np.argmin(dims))
     for _ in range(n_holes):
         for _try in range(6):
