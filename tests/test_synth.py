@@ -361,18 +361,6 @@ def test_tall_bosses_give_more_and_taller_bosses_and_leave_the_default_stream():
     assert np.array_equal(a.occupancy, b.occupancy) and np.allclose(a.xs, b.xs)
 
 
-def test_tall_bosses_are_recorded_and_regenerated(tmp_path):
-    """``--tall-bosses`` is in the manifest, and a shard's pair rebuilds from its seed with the option."""
-    rc = synth_main(["--out", str(tmp_path), "--count", "2", "--seed", "6", "--per-shard", "2", "--n-cond", "40",
-                     "--n-target", "40", "--cad-features", "--tall-bosses", "--no-progress"])
-    assert rc == 0
-    assert json.loads((tmp_path / "dataset.json").read_text())["params"]["tall_bosses"] is True
-    shard = load_shard(tmp_path / "shard-00000.npz")
-    for k, rec in enumerate(shard):
-        again = shard.regenerate(k)
-        assert np.array_equal(rec["polycube"].occupancy, again.polycube.occupancy)
-
-
 def test_min_holes_drill_at_least_that_many_holes_and_leave_the_default_stream():
     """``min_holes``: over the same seeds every block keeps at least that many through-holes (a hole is only
     attempted, but the base block always has room for two) and the genus rises; 0 gives exactly the polycube
@@ -395,12 +383,15 @@ def test_min_holes_drill_at_least_that_many_holes_and_leave_the_default_stream()
     assert np.array_equal(a.occupancy, b.occupancy) and np.allclose(a.xs, b.xs)
 
 
-def test_min_holes_are_recorded_and_regenerated(tmp_path):
-    """``--min-holes`` is in the manifest, and a shard's pair rebuilds from its seed with the option."""
+@pytest.mark.parametrize("flags, key, value", [(["--tall-bosses"], "tall_bosses", True),
+                                               (["--min-holes", "2"], "min_holes", 2)])
+def test_generator_options_are_recorded_and_regenerated(tmp_path, flags, key, value):
+    """``--tall-bosses`` and ``--min-holes`` are in the manifest, and a shard's pair rebuilds from its seed with
+    the option."""
     rc = synth_main(["--out", str(tmp_path), "--count", "2", "--seed", "6", "--per-shard", "2", "--n-cond", "40",
-                     "--n-target", "40", "--cad-features", "--min-holes", "2", "--no-progress"])
+                     "--n-target", "40", "--cad-features", *flags, "--no-progress"])
     assert rc == 0
-    assert json.loads((tmp_path / "dataset.json").read_text())["params"]["min_holes"] == 2
+    assert json.loads((tmp_path / "dataset.json").read_text())["params"][key] == value
     shard = load_shard(tmp_path / "shard-00000.npz")
     for k, rec in enumerate(shard):
         again = shard.regenerate(k)
