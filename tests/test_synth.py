@@ -383,11 +383,70 @@ def test_min_holes_drill_at_least_that_many_holes_and_leave_the_default_stream()
     assert np.array_equal(a.occupancy, b.occupancy) and np.allclose(a.xs, b.xs)
 
 
+def test_breakouts_open_a_hole_into_an_end_the_slanted_cut_tilts_and_leave_the_default_stream():
+    """``breakouts``: the opened box runs from a through-hole's side to the bounding box's end and keeps the hole
+    a handle (filling the box back gives the same genus); the cut of that end (``breakout_cut``) tilts the open
+    layers' end face inward and leaves it where it is beyond the pivot; ``make_pair`` puts that cut on that end;
+    0 gives exactly the pair the seed gave before the option."""
+    from polycubenet.synth.deform import breakout_cut
+    from polycubenet.synth.pairs import make_pair
+    from polycubenet.synth.polycube import _Builder, random_polycube, solid_genus
+
+    seen = 0
+    for s in range(30):
+        pc = random_polycube(np.random.default_rng([79, s]), min_holes=1, breakouts=1.0)
+        out = next((f for f in pc.features if f.kind == "breakout"), None)
+        if out is None:
+            continue
+        e, blo, bhi = out.axis, out.lo, out.hi
+        lo, hi = pc.bounds
+        assert blo[e] <= lo[e] + 1e-9 or bhi[e] >= hi[e] - 1e-9  # open to the end
+        assert any(f.kind == "through_hole" and (np.isclose(f.hi[e], blo[e]) or np.isclose(f.lo[e], bhi[e]))
+                   for f in pc.features)  # from a hole's side
+        cell = [(g[:-1] + g[1:]) / 2 for g in (pc.xs, pc.ys, pc.zs)]
+        assert not pc.occupancy[np.ix_(*[(c > bl) & (c < bh) for c, bl, bh in zip(cell, blo, bhi)])].any()
+        cut = breakout_cut(np.random.default_rng(s), lo, hi, blo, bhi, e)
+        if cut is None:
+            continue
+        assert cut.axis == e and cut.profile == "cut" and cut.face in (lo[e], hi[e])
+        open_side = -1.0 if blo[cut.by] <= lo[cut.by] + 1e-9 else 1.0
+        assert cut.side == open_side  # the tilted layers are the open ones
+        end = np.tile(0.5 * (lo + hi), (2, 1))
+        end[:, e] = cut.face
+        end[0, cut.by] = (lo if open_side < 0 else hi)[cut.by]  # the open layers' far face
+        end[1, cut.by] = cut.pivot - cut.side * 1e-3  # short of the pivot
+        moved = cut(end) - end
+        assert cut.sign * moved[0, e] < -1e-6 and abs(moved[1, e]) < 1e-12
+        seen += 1
+    assert seen >= 8
+    opened = 0
+    for s in range(20):  # on a drilled block the opened layers leave the hole a handle
+        b = _Builder(np.random.default_rng([80, s]), np.array([6, 5, 4]))
+        assert b.through_hole(int(s % 3))
+        before = b.occ.copy()
+        if b.breakout():
+            opened += 1
+            assert solid_genus(b.occ) == solid_genus(before) == 1 and (before & ~b.occ).any()
+    assert opened >= 15
+    for seed in range(8):  # make_pair: the pair's only slanted cut is the breakout's, on its end
+        pair = make_pair(seed, n_cond=64, n_target=64, whole_slants=True, min_holes=1, breakouts=1.0)
+        out = next((f for f in pair.meta["features"] if f["kind"] == "breakout"), None)
+        cuts = [m for m in pair.deformation.maps if m.kind == "slant_end"]
+        if out is not None and cuts:
+            assert len(cuts) == 1 and cuts[0].axis == out["axis"] and cuts[0].profile == "cut"
+            seen += 1
+    assert seen >= 12
+    a = make_pair(3, n_cond=64, n_target=64, whole_slants=True)
+    b = make_pair(3, n_cond=64, n_target=64, whole_slants=True, breakouts=0.0)
+    assert np.array_equal(a.cond.points, b.cond.points) and np.array_equal(a.target.points, b.target.points)
+
+
 @pytest.mark.parametrize("flags, key, value", [(["--tall-bosses"], "tall_bosses", True),
-                                               (["--min-holes", "2"], "min_holes", 2)])
+                                               (["--min-holes", "2"], "min_holes", 2),
+                                               (["--breakouts", "1"], "breakouts", 1.0)])
 def test_generator_options_are_recorded_and_regenerated(tmp_path, flags, key, value):
-    """``--tall-bosses`` and ``--min-holes`` are in the manifest, and a shard's pair rebuilds from its seed with
-    the option."""
+    """``--tall-bosses``, ``--min-holes`` and ``--breakouts`` are in the manifest, and a shard's pair rebuilds from
+    its seed with the option."""
     rc = synth_main(["--out", str(tmp_path), "--count", "2", "--seed", "6", "--per-shard", "2", "--n-cond", "40",
                      "--n-target", "40", "--cad-features", *flags, "--no-progress"])
     assert rc == 0

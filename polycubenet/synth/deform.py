@@ -526,6 +526,34 @@ def _place_cut(rng: np.random.Generator, lo, hi, ext, axis: int, sign: float,
     return None
 
 
+def breakout_cut(rng: np.random.Generator, lo, hi, box_lo, box_hi, axis: int) -> SlantEnd | None:
+    """The plane cut (:class:`SlantEnd` ``profile="cut"``) of the end a ``breakout`` feature
+    (:meth:`polycubenet.synth.polycube._Builder.breakout`: box ``box_lo``-``box_hi``, opening into the end on
+    ``axis``) opens a hole into, tilted across the open layers so that the hole breaks out through the slanted
+    face: the pivot between the open layers' top and the far face (a whole-end cut at the far face), a 20-45
+    degree tilt, the slab 1.15-1.5 times the cut's depth and within 60 % of the length (a gentler slope if
+    need be; None under 15 degrees)."""
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    box_lo, box_hi = np.asarray(box_lo, dtype=np.float64), np.asarray(box_hi, dtype=np.float64)
+    ext = hi - lo
+    tol = 1e-9
+    # the hole's axis: besides the end's, the one the box reaches the bounding box on
+    by = next(a for a in range(3) if a != axis and (box_lo[a] <= lo[a] + tol or box_hi[a] >= hi[a] - tol))
+    sign = -1.0 if box_lo[axis] <= lo[axis] + tol else 1.0
+    side = -1.0 if box_lo[by] <= lo[by] + tol else 1.0  # the open layers: below (-1) or above the pivot
+    level = float(box_hi[by] if side < 0 else box_lo[by])
+    far = float(hi[by] if side < 0 else lo[by])
+    pivot = level + rng.uniform(0.0, 1.0) * (far - level)
+    reach = float(pivot - lo[by] if side < 0 else hi[by] - pivot)
+    slope = float(np.tan(np.radians(rng.uniform(20.0, 45.0))))
+    k = float(rng.uniform(1.15, 1.5))
+    slope = min(slope, 0.6 * ext[axis] / (k * reach))
+    if reach <= 0 or slope < np.tan(np.radians(15.0)):
+        return None
+    return SlantEnd(axis, by, float(hi[axis] if sign > 0 else lo[axis]), sign, pivot, side, slope, k * slope * reach,
+                    profile="cut")
+
+
 def random_deformation(
     rng: np.random.Generator,
     lo: np.ndarray,

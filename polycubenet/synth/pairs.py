@@ -39,7 +39,7 @@ from ..atomic import load_npz, save_npz
 from ..data import Polycube, SurfaceSample
 from ..frame import Transform, canonicalize, face_normals_areas
 from ..sampling import interpolate, poisson_disk, uniform_sample
-from .deform import DeformationMap, RoundHole, check_invertible, empty_cells, random_deformation
+from .deform import DeformationMap, RoundHole, breakout_cut, check_invertible, empty_cells, random_deformation
 from ..tol import AREA_REL
 from .polycube import (FLANGES, convex_edges, polycube_quads, random_polycube, surface_genus, transform_grid,
                        triangulate_quads, turned_polycube)
@@ -223,6 +223,7 @@ def make_pair(
     bolt_circles: float = 0.0,
     flanges: float = FLANGES,
     min_holes: int = 0,
+    breakouts: float = 0.0,
 ) -> SynthPair:
     """Generate one pair from ``seed`` (see the module docstring for the steps).
 
@@ -268,6 +269,11 @@ def make_pair(
     min_holes : int, the pairs that are not turned parts attempt at least this many through-holes
         (:func:`~polycubenet.synth.polycube.random_polycube`): genus 2 and more, as drilled machined parts are.
         0: a seed gives the pair it gave before.
+    breakouts : float in [0, 1], the share of the pairs that are not turned parts and have a through-hole where one
+        hole is opened into the nearer end over some of its layers and that end cut by a slanted plane across them
+        (:func:`~polycubenet.synth.deform.breakout_cut`, instead of ``whole_slants``' cut): the hole breaks out
+        through the slanted face, as drilled holes near a machined part's slanted end do.  0: a seed gives the
+        pair it gave before.
 
     Returns
     -------
@@ -285,7 +291,8 @@ def make_pair(
         if turned > 0 and rng.random() < turned:
             pc = turned_polycube(rng, bolt_circles=bolt_circles, flanges=flanges)
         else:
-            pc = random_polycube(rng, style=style, n_holes=n_holes, tall_bosses=tall_bosses, min_holes=min_holes)
+            pc = random_polycube(rng, style=style, n_holes=n_holes, tall_bosses=tall_bosses, min_holes=min_holes,
+                                 breakouts=breakouts)
         body = next((f for f in pc.features if f.kind == "turned"), None)
         V0, Q = polycube_quads(pc.xs, pc.ys, pc.zs, pc.occupancy, h=edge_length)
         lo, hi = pc.bounds
@@ -301,10 +308,16 @@ def make_pair(
                                        float(rng.choice([16.0, 64.0], p=[0.25, 0.75])), float(rng.uniform(0.85, 1.0)),
                                        1e6))
         else:
+            out = next((f for f in pc.features if f.kind == "breakout"), None)
+            cut = None if out is None else breakout_cut(rng, lo, hi, out.lo, out.hi, out.axis)
             dmap = random_deformation(rng, lo, hi, holes, edges, strength=strength, slanted_ends=cad_features,
-                                       whole_ends=whole_slants, max_strength=max_strength, full_ends=full_slants,
-                                       cut_ends=cut_slants,
+                                       whole_ends=whole_slants and cut is None, max_strength=max_strength,
+                                       full_ends=full_slants, cut_ends=cut_slants,
                                        keep_out=empty_cells(pc.xs, pc.ys, pc.zs, pc.occupancy) if cut_slants else ())
+            if cut is not None:  # after the roundings, before the global maps, as random_deformation's own cut
+                at = next((i for i, m in enumerate(dmap.maps) if m.kind not in ("round_hole", "round_edge")),
+                          len(dmap.maps))
+                dmap.maps.insert(at, cut)
         ok, min_det = check_invertible(dmap, lo, hi, rng, extra=V0)
         timings["deformation"] += time.perf_counter() - t1
         if not ok:

@@ -44,8 +44,8 @@ class Feature:
 
     Attributes
     ----------
-    kind : str, ``through_hole``, ``pocket``, ``slot``, ``notch``, ``step``, ``boss``, ``arch``
-    axis : int, the feature's axis (hole direction, boss normal, ...)
+    kind : str, ``through_hole``, ``pocket``, ``slot``, ``notch``, ``step``, ``boss``, ``arch``, ``breakout``
+    axis : int, the feature's axis (hole direction, boss normal, ...; a breakout's: the end it opens into)
     lo, hi : (3,) float64, the feature's box in the polycube's (normalized) coordinates
     """
 
@@ -234,6 +234,36 @@ class _Builder:
         self.features.append(("arch", axis, lo, hi))
         return True
 
+    def breakout(self) -> bool:
+        """Open one through-hole into the nearer end of the stock beside it, over some of its layers: the box
+        between the hole and that end, the hole's width, 1 to all but one of the layers along the hole from
+        one face.  The layers left keep the hole closed (its handle stays), so with a slanted cut of that end
+        across the open layers (:func:`polycubenet.synth.pairs.make_pair`) the hole breaks out through the
+        slanted face, as a drilled hole near a machined part's slanted end does."""
+        holes = [(axis, lo, hi) for kind, axis, lo, hi in self.features if kind == "through_hole"]
+        if not holes:
+            return False
+        axis, lo, hi = holes[int(self.rng.integers(len(holes)))]
+        if self.n[axis] < 2:
+            return False
+        walls = []  # (cells to the stock's end, end axis, low end?)
+        for e in range(3):
+            if e != axis:
+                walls += [(int(lo[e] - self.stock_lo[e]), e, True), (int(self.stock_hi[e] - hi[e]), e, False)]
+        walls = [w for w in walls if w[0] >= 1]
+        if not walls:
+            return False
+        near = min(w[0] for w in walls)
+        _, e, low = [w for w in walls if w[0] == near][int(self.rng.integers(sum(w[0] == near for w in walls)))]
+        blo, bhi = np.asarray(lo).copy(), np.asarray(hi).copy()
+        blo[e], bhi[e] = (0, lo[e]) if low else (hi[e], self.occ.shape[e])
+        depth = int(self.rng.integers(1, self.n[axis]))
+        if self.rng.random() < 0.5:
+            blo[axis], bhi[axis] = 0, self.stock_lo[axis] + depth
+        else:
+            blo[axis], bhi[axis] = self.stock_hi[axis] - depth, self.occ.shape[axis]
+        return self.try_edit("breakout", e, blo, bhi, False)
+
     def _cell_box(self, axis, along, across, lvl, a0, a1, c0, c1):
         sl = [slice(None)] * 3
         sl[axis] = slice(lvl, lvl + 1)
@@ -274,6 +304,7 @@ def random_polycube(
     min_width: float = MIN_WIDTH,
     tall_bosses: bool = False,
     min_holes: int = 0,
+    breakouts: float = 0.0,
 ) -> RandomPolycube:
     """A random valid polycube, machined-part style.
 
@@ -291,13 +322,16 @@ def random_polycube(
     min_holes : int, with ``n_holes`` None: attempt at least this many through-holes (the random count raised
         to it), for parts of genus 2 and more, as drilled machined parts are.  0: the random stream is the one
         before this option.
+    breakouts : float in [0, 1], the share of parts with a through-hole that open one of them into the stock's
+        nearer end over some of its layers (a feature ``breakout``, :meth:`_Builder.breakout`), for a slanted
+        cut the hole breaks out through.  0: the random stream is the one before this option.
 
     Returns
     -------
     RandomPolycube, normalized (bounding box centred at 0, diagonal 1)
     """
     for _ in range(max_tries):
-        pc = _random_polycube_once(rng, style, n_holes, min_width, tall_bosses, min_holes)
+        pc = _random_polycube_once(rng, style, n_holes, min_width, tall_bosses, min_holes, breakouts)
         if pc is not None:
             return pc
     raise RuntimeError("random_polycube: no valid polycube")  # pragma: no cover - never seen
@@ -305,7 +339,7 @@ def random_polycube(
 
 def _random_polycube_once(
     rng: np.random.Generator, style: str | None, n_holes: int | None, min_width: float, tall_bosses: bool = False,
-    min_holes: int = 0,
+    min_holes: int = 0, breakouts: float = 0.0,
 ) -> RandomPolycube | None:
     if style is None:
         style = str(rng.choice(_STYLES, p=_STYLE_P))
@@ -350,6 +384,10 @@ def _random_polycube_once(
             else:
                 axis = int(rng.integers(3))
             if b.through_hole(axis):
+                break
+    if breakouts > 0 and rng.random() < breakouts:
+        for _try in range(4):
+            if b.breakout():
                 break
 
     n_other = int(rng.integers(1 if tall_bosses else 0, 5))
