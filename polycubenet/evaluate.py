@@ -225,8 +225,10 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
                 if cfg.anchor_normals:
                     cp = np.hstack([cp, np.asarray(s["cond_normals"][k], np.float32)])
                 anchors.append(cp[np.random.default_rng(k).permutation(len(cp))[:n_gen]])
+        # a model told the genus gets the pair's, as the pipeline gives it the part's
+        told = {"genus": [int(s["genus"][k]) for s, k in chunk]} if cfg.genus_classes else {}
         clouds = gen(conds, n_gen, model=loaded, steps=steps, seed=seed + b, device=device, anchors=anchors,
-                          recycles=recycles)
+                     recycles=recycles, **told)
         t_gen = (time.perf_counter() - tg) / len(chunk)
         for i, ((s, k), cloud, c) in enumerate(zip(chunk, clouds, conds)):
             truth = np.asarray(s["target_points"][k], float)

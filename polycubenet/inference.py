@@ -148,7 +148,8 @@ def model_anchors(loaded: "Loaded", V: np.ndarray, F: np.ndarray, n: int, seed: 
 
 def _sample_batch(loaded: Loaded, conds: list[np.ndarray], n_out: int, seeds: list[int], *, steps, stride, eta,
                   device: str, chunk: int | None, progress: Callable | None,
-                  anchors: list[np.ndarray] | None = None, recycles: int | None = None) -> list[np.ndarray]:
+                  anchors: list[np.ndarray] | None = None, recycles: int | None = None,
+                  genus: list[int] | None = None) -> list[np.ndarray]:
     model, diffusion = loaded.model, loaded.diffusion
     cfg = model.config
     scale = cfg.xyz_scale
@@ -162,7 +163,8 @@ def _sample_batch(loaded: Loaded, conds: list[np.ndarray], n_out: int, seeds: li
                                         scale, cfg.anchor_gain)
     x = diffusion.sample(model, cond, n_out, steps=steps, stride=stride, eta=eta, generator=gens,
                          chunk=chunk or min(cfg.chunk, MAX_CHUNK), autocast=autocast, progress=progress, anchor=anchor,
-                         recycles=(1 if cfg.recycle else 0) if recycles is None else recycles)
+                         recycles=(1 if cfg.recycle else 0) if recycles is None else recycles,
+                         genus=None if genus is None or not cfg.genus_classes else genus)
     if cfg.anchored:
         out = anchored_from_network(x, anchor, scale, cfg.anchor_gain)
     else:
@@ -185,6 +187,7 @@ def generate(
     progress: Callable[[int, int], None] | None = None,
     anchors: Sequence[np.ndarray] | None = None,
     recycles: int | None = None,
+    genus: Sequence[int | None] | None = None,
 ) -> list[np.ndarray]:
     """Polycube clouds for ``conditions`` (each ``(N_i, 3)``, canonical frame).
 
@@ -206,6 +209,8 @@ def generate(
     progress : called with ``(batches done, batches)``
     recycles : a recycling model's (``ModelConfig.recycle``) further evaluations per step, each given
         the last one's clean estimate (default: 1 for such a model, else 0)
+    genus : per request the part's genus (None: unknown), for a model that takes it
+        (``ModelConfig.genus_classes``); a model that does not ignores it
 
     Returns
     -------
@@ -237,17 +242,33 @@ def generate(
         for i, (a, n) in enumerate(zip(anch, outs)):
             if a.shape != (n, k) or not np.isfinite(a).all():
                 raise ValueError(f"anchors {i}: expected a finite ({n}, {k}) array of {what}, got shape {a.shape}")
+    if genus is not None and len(genus) != len(conds):
+        raise ValueError(f"{len(conds)} conditions but {len(genus)} genus values")
+    gen_of = [-1 if genus is None or genus[i] is None else int(genus[i]) for i in range(len(conds))]
     batches = plan_batches([len(c) for c in conds], outs, point_budget or DEFAULT_POINT_BUDGET)
     results: list[np.ndarray | None] = [None] * len(conds)
     for b, idx in enumerate(batches):
         clouds = _sample_batch(loaded, [conds[i] for i in idx], outs[idx[0]], [request_seed(seed, conds[i]) for i in idx],
                                steps=steps, stride=stride, eta=eta, device=device, chunk=chunk, progress=None,
-                               anchors=None if anch is None else [anch[i] for i in idx], recycles=recycles)
+                               anchors=None if anch is None else [anch[i] for i in idx], recycles=recycles,
+                               genus=[gen_of[i] for i in idx])
         for i, cloud in zip(idx, clouds):
             results[i] = cloud
         if progress is not None:
             progress(b + 1, len(batches))
     return results  # type: ignore[return-value]
+
+
+def part_genus(F: np.ndarray) -> int | None:
+    """The genus of a part's closed surface ``F`` (the part's own, the one extraction checks the polycube
+    against), or None where the surface is not one closed manifold (the model is then told "unknown")."""
+    from .errors import PolycubeError
+    from .polycube import surface_genus
+
+    try:
+        return int(surface_genus(F))
+    except PolycubeError:
+        return None
 
 
 class ModelSource:
@@ -307,8 +328,9 @@ class ModelSource:
             cond = np.asarray(cond, np.float64) @ R
             if a is not None:
                 anchors = [np.hstack([a[:, i:i + 3] @ R for i in range(0, a.shape[1], 3)]).astype(np.float32)]
+        genus = part_genus(F) if loaded.model.config.genus_classes else None
         (cloud,) = generate([cond], n, model=loaded, steps=self.steps,
-                            seed=seed, device=self.device, anchors=anchors)
+                            seed=seed, device=self.device, anchors=anchors, genus=[genus])
         if self.turn:
             cloud = np.hstack([cloud[:, :3] @ R, cloud[:, 3:6] @ R])
         meta = {
@@ -319,6 +341,8 @@ class ModelSource:
         }
         if self.turn:
             meta["turn"] = self.turn
+        if loaded.model.config.genus_classes:
+            meta["genus_given"] = genus
         if self.anchors != "uniform" and a is not None:
             meta["anchors"] = self.anchors
         return PolycubeCloud(cloud[:, :3].astype(np.float64), cloud[:, 3:].astype(np.float64), meta=meta,

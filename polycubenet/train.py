@@ -81,6 +81,7 @@ class TrainConfig:
     face_weight: float = 0.0  # > 0: each target point's loss weighted by its plane's share of the points to -this (face_weights)
     normal_weight: float = 1.0  # a point's error along its target normal (across its plane) weighs this much (Diffusion.training_loss)
     slant_weight: float = 0.0  # > 0: a point on a slanted face of the part weighs 1 + this (slant_weights)
+    genus_drop: float = 0.1  # a model told the genus (ModelConfig.genus_classes): the share of pairs told "unknown"
 
 
 def _cond_points(cfg: "TrainConfig | None", points: int) -> int:
@@ -409,14 +410,15 @@ def _to_net(batch, mcfg: ModelConfig, dev) -> tuple[torch.Tensor, torch.Tensor, 
 
 
 def heldout_loss(model, diffusion: Diffusion, x0: torch.Tensor, cond: torch.Tensor, seed: int = 0,
-                 anchor: torch.Tensor | None = None) -> float:
+                 anchor: torch.Tensor | None = None, genus: torch.Tensor | None = None) -> float:
     """Mean L2 error of the recipe's prediction target (noise, or v) at fixed timesteps and noise
     (comparable across the steps of one run, not across recipes: compare those with evaluate)."""
     g = torch.Generator(device=x0.device).manual_seed(seed)
     B = x0.shape[0]
     t = torch.linspace(0, diffusion.T - 1, B, device=x0.device).long()
     noise = torch.randn(x0.shape, generator=g, device=x0.device)
-    out = model(diffusion.q_sample(x0, t, noise), t, cond, **({} if anchor is None else {"anchor": anchor}))
+    extra = ({} if anchor is None else {"anchor": anchor}) | ({} if genus is None else {"genus": genus})
+    out = model(diffusion.q_sample(x0, t, noise), t, cond, **extra)
     target = noise
     if diffusion.prediction == "v":
         ab = diffusion._ab(t, x0)
@@ -528,12 +530,15 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
     # reproducible across a resume
     on_device = DevicePairs(data, dev, mcfg.anchor_dim) if dev.type == "cuda" else None
     heldout = None
+    heldout_genus = None
     if eval_dir is not None and rank == 0:
         ev = PairData(eval_dir, limit=cfg.eval_pairs)
         # no augmentation, the condition at the run's own resolution (cond_points)
         plain = dataclasses.replace(cfg, scale_aug=0.0, jitter=0.0)
         heldout = _to_net(ev.batch(np.arange(len(ev)), cfg.points, np.random.default_rng(12345), plain,
                                    anchors=mcfg.anchor_dim), mcfg, dev)
+        if mcfg.genus_classes:
+            heldout_genus = torch.as_tensor(ev.genus, dtype=torch.long, device=dev)
     net = model
     if ddp:
         from torch.nn.parallel import DistributedDataParallel
@@ -575,11 +580,15 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
         for group in opt.param_groups:
             group["lr"] = lr_at(step, cfg) * group.get("lr_mult", 1.0)
         gen = torch.Generator(device=dev).manual_seed(int(rng.integers(2**62)))
+        genus = None
+        if mcfg.genus_classes:  # drawn after the rest, so a seed's pairs, noise and timesteps stay a plain run's
+            g = np.where(rng.random(len(idx)) < cfg.genus_drop, -1, np.asarray(data.genus)[idx])
+            genus = torch.as_tensor(g, dtype=torch.long, device=dev)
         model.train()
         loss, stats = diffusion.training_loss(net, x0, cond, loss=cfg.loss, generator=gen, autocast=autocast,
                                               anchor=anchor, t_bias=cfg.t_bias,
                                               t_uniform=cfg.t_uniform, recycle=cfg.recycle, point_weight=weight,
-                                              normal_weight=cfg.normal_weight)
+                                              normal_weight=cfg.normal_weight, genus=genus)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         gnorm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.clip))
@@ -615,7 +624,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
             window = []
             if heldout is not None:
                 ema.eval()
-                metrics["heldout_l2"] = heldout_loss(ema, diffusion, *heldout[:2], anchor=heldout[2])
+                metrics["heldout_l2"] = heldout_loss(ema, diffusion, *heldout[:2], anchor=heldout[2], genus=heldout_genus)
             with open(log_path, "a") as fh:
                 fh.write(json.dumps(metrics) + "\n")
             if bar is None and progress:
@@ -642,7 +651,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
 def recipe_flags(checkpoint: str | Path) -> list[str]:
     """The ``train`` flags of the recipe a checkpoint was trained with (preset, diffusion, points,
     condition points, batch, anchor gain, t bias and its uniform share, recycling share,
-    face weight, normal weight, slant weight), so a run continues it (``scripts/train_session.sh``,
+    face weight, normal weight, slant weight, genus drop), so a run continues it (``scripts/train_session.sh``,
     ``scripts/device_train.sh``; a later ``--batch`` on the command line wins)."""
     s = torch.load(checkpoint, map_location="cpu", weights_only=False)
     d, tc = s.get("diffusion") or {}, s.get("train_config") or {}
@@ -653,7 +662,8 @@ def recipe_flags(checkpoint: str | Path) -> list[str]:
             "--batch", str(tc.get("batch", 12)), "--anchor-gain", str((s.get("model_config") or {}).get("anchor_gain", 0.0)),
             "--t-bias", str(tc.get("t_bias", 1.0)), "--t-uniform", str(tc.get("t_uniform", 0.0)),
             "--recycle", str(tc.get("recycle", 0.0)), "--face-weight", str(tc.get("face_weight", 0.0)),
-            "--normal-weight", str(tc.get("normal_weight", 1.0)), "--slant-weight", str(tc.get("slant_weight", 0.0))]
+            "--normal-weight", str(tc.get("normal_weight", 1.0)), "--slant-weight", str(tc.get("slant_weight", 0.0)),
+            "--genus-drop", str(tc.get("genus_drop", 0.1))]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -8,6 +8,7 @@ every network path (a zero output layer would make the equality checks vacuous).
 
 from __future__ import annotations
 
+import dataclasses
 import types
 
 import numpy as np
@@ -349,3 +350,47 @@ def test_a_turned_draw_is_the_turned_part_drawn_and_turned_back(tmp_path):
     assert np.abs(turned.points - plain.points).max() > 1e-4
     with pytest.raises(ValueError, match="unknown turn"):
         ModelSource(path, turn="w")
+
+
+def test_a_genus_model_is_told_each_request_s_genus_and_the_model_source_the_part_s(ckpt, tmp_path):
+    """A model with ``genus_classes``: ``generate(genus=)`` gives each request its own genus (a batch of
+    two genera equals each alone; None is "unknown", not genus 0); ``ModelSource`` tells it the genus of
+    the part's surface (a ring: 1) and records it; a surface that is not one closed manifold is
+    "unknown"; a model without genus vectors ignores the argument."""
+    import trimesh
+
+    from polycubenet.inference import part_genus
+
+    torch.manual_seed(3)
+    net = PolycubeNet(dataclasses.replace(preset("tiny"), genus_classes=4))
+    with torch.no_grad():
+        torch.nn.init.normal_(net.denoiser.out.weight, std=0.2)
+        torch.nn.init.normal_(net.genus.weight, std=1.0)
+    path = tmp_path / "genus.pt"
+    save_checkpoint(path, {"kind": "published", "model_config": net.config.to_dict(),
+                           "diffusion": Diffusion().to_dict(), "ema": net.state_dict()})
+    c1, c2 = _cloud(80, 40), _cloud(80, 41)
+    both = generate([c1, c2], 50, model=path, steps=2, device="cpu", genus=[1, 3])
+    (one,) = generate([c1], 50, model=path, steps=2, device="cpu", genus=[1])
+    (two,) = generate([c2], 50, model=path, steps=2, device="cpu", genus=[3])
+    np.testing.assert_array_equal(both[0], one)
+    np.testing.assert_array_equal(both[1], two)
+    (zero,) = generate([c1], 50, model=path, steps=2, device="cpu", genus=[0])
+    (unknown,) = generate([c1], 50, model=path, steps=2, device="cpu", genus=[None])
+    (default,) = generate([c1], 50, model=path, steps=2, device="cpu")
+    np.testing.assert_array_equal(unknown, default)
+    assert np.abs(one - zero).max() > 1e-4 and np.abs(zero - unknown).max() > 1e-4
+    with pytest.raises(ValueError, match="genus values"):
+        generate([c1, c2], 50, model=path, steps=2, device="cpu", genus=[1])
+
+    ring = trimesh.creation.annulus(r_min=0.2, r_max=0.4, height=0.2)
+    V, F = np.asarray(ring.vertices) / 1.5, np.asarray(ring.faces)
+    assert part_genus(F) == 1 and part_genus(F[:-1]) is None
+    config = PipelineConfig(n_learned=50, seed=0)
+    sample = types.SimpleNamespace(points=c1.astype(np.float64))
+    cloud = ModelSource(path, steps=2, device="cpu")(sample, V, F, config)
+    assert cloud.meta["genus_given"] == 1
+    (told,) = generate([c1], 50, model=path, steps=2, device="cpu", genus=[1], seed=config.seed)
+    np.testing.assert_allclose(cloud.points, told[:, :3], atol=1e-6)
+    (plain,) = generate([c1], 50, model=ckpt, steps=2, device="cpu", genus=[2])
+    np.testing.assert_array_equal(plain, generate([c1], 50, model=ckpt, steps=2, device="cpu")[0])

@@ -493,3 +493,47 @@ def test_slant_weights_weigh_the_points_of_slanted_faces():
     assert float(w[0, 2] / w[0, 0]) == pytest.approx(4.0)  # the 30-degree face
     assert float(w[0, 3]) == pytest.approx(float(w[0, 1]))  # 10 degrees off an axis: flat
     assert torch.allclose(slant_weights(anchor, 0.0), torch.ones(1, 4))
+
+
+def test_a_genus_model_starts_as_the_one_without_and_learns_the_genus_it_is_told(shards, tmp_path):
+    """``--init`` into a preset told the part's genus (``cpu-anchored-normals-genus`` over
+    ``cpu-anchored-normals``): the genus vectors start at zero, so every genus gives the old function;
+    training moves the vectors of the genera its pairs have (and of "unknown", ``genus_drop``), after
+    which the genus changes the prediction, a genus past the table's end shares its last class and
+    None is "unknown"."""
+    from polycubenet.model import preset as model_preset
+    from polycubenet.train import recipe_flags
+
+    old_cfg = dataclasses.replace(model_preset("tiny"), anchored=True, anchor_normals=True)
+    train(shards, tmp_path / "old", dataclasses.replace(CFG, steps=2), progress=False, model_config=old_cfg)
+    old = load_checkpoint(tmp_path / "old" / "last.pt").model.eval()
+    new_cfg = dataclasses.replace(old_cfg, genus_classes=3)
+    g = torch.Generator().manual_seed(0)
+    x, cond = torch.randn(2, 20, 6, generator=g), torch.randn(2, 30, 3, generator=g)
+    anchor = torch.cat([torch.randn(2, 20, 3, generator=g),
+                        torch.nn.functional.normalize(torch.randn(2, 20, 3, generator=g), dim=-1)], -1)
+    t = torch.tensor([300, 900])
+    train(shards, tmp_path / "zero", dataclasses.replace(CFG, steps=1, lr=0.0), progress=False, model_config=new_cfg,
+          init=tmp_path / "old" / "last.pt")
+    same = load_checkpoint(tmp_path / "zero" / "last.pt").model.eval()
+    with torch.no_grad():
+        ref = old(x, t, cond, anchor=anchor)
+        for genus in (None, [0, 2], [1, -1]):
+            torch.testing.assert_close(same(x, t, cond, anchor=anchor, genus=genus), ref)
+        with pytest.raises(ValueError, match="takes no genus"):
+            old(x, t, cond, anchor=anchor, genus=[1, 1])
+    genera = set(int(v) for v in PairData(shards).genus)
+    train(shards, tmp_path / "moves", dataclasses.replace(CFG, steps=3, warmup=0, lr=1e-2, genus_drop=0.5),
+          progress=False, model_config=new_cfg, init=tmp_path / "old" / "last.pt")
+    moved = load_checkpoint(tmp_path / "moves" / "last.pt").model.eval()
+    rows = moved.genus.weight.abs().sum(dim=1)
+    for k in {min(v, 2) for v in genera} | {3}:  # every class its pairs have, and "unknown"
+        assert rows[k] > 0
+    with torch.no_grad():
+        a, b = moved(x, t, cond, anchor=anchor, genus=[0, 0]), moved(x, t, cond, anchor=anchor, genus=[2, 2])
+        assert not torch.allclose(a, b)
+        torch.testing.assert_close(moved(x, t, cond, anchor=anchor, genus=[7, 9]), b)
+        torch.testing.assert_close(moved(x, t, cond, anchor=anchor, genus=None),
+                                   moved(x, t, cond, anchor=anchor, genus=[-1, -1]))
+    flags = recipe_flags(tmp_path / "moves" / "last.pt")
+    assert float(flags[flags.index("--genus-drop") + 1]) == 0.5

@@ -88,6 +88,12 @@ class ModelConfig:
         (self-conditioning, or recycling: :class:`~polycubenet.model.network.Denoiser`); zeros on a
         first evaluation.  A one-step model then evaluates twice at the same timestep, the second
         time seeing where its first answer put every point (``train --recycle``, ``generate(recycles=)``).
+    genus_classes : > 0: the condition also carries the part's genus (a topological fact of the input
+        surface, which extraction checks the polycube against), one learned vector per genus
+        ``0 .. genus_classes - 1`` (the last one for that genus and more) plus one for "unknown",
+        added to every condition token (:meth:`~polycubenet.model.network.PolycubeNet.encode`); the
+        vectors start at zero, so a file trained without them keeps its function.  0: the cloud only
+        (the paper's).
     """
 
     encoder: StreamConfig
@@ -103,6 +109,7 @@ class ModelConfig:
     local_k: int = 0
     local_ref: int = 2048
     recycle: bool = False
+    genus_classes: int = 0
 
     @property
     def anchor_dim(self) -> int:
@@ -182,6 +189,16 @@ PRESETS: dict[str, ModelConfig] = {
         anchored=True,
         anchor_normals=True,
         recycle=True,
+    ),
+    # cpu-anchored-normals told the part's genus (ModelConfig.genus_classes: 0-6, 7 and more, unknown).
+    # ``train --init`` from a cpu-anchored-normals file starts it as that file's function: the genus
+    # vectors start at zero
+    "cpu-anchored-normals-genus": ModelConfig(
+        encoder=StreamConfig(blocks=2, layers=2, dim=96, latents=64, heads=4, mlp_ratio=2.0),
+        denoiser=StreamConfig(blocks=3, layers=3, dim=96, latents=64, heads=4, mlp_ratio=2.0),
+        anchored=True,
+        anchor_normals=True,
+        genus_classes=8,
     ),
     "tiny": ModelConfig(
         encoder=StreamConfig(blocks=1, layers=1, dim=32, latents=8, heads=2, mlp_ratio=2.0),

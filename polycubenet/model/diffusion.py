@@ -179,6 +179,7 @@ class Diffusion:
         recycle: float = 0.0,
         point_weight: torch.Tensor | None = None,
         normal_weight: float = 1.0,
+        genus: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, dict]:
         """One batch: random t and noise, predict the noise, the hybrid (or l2, or l1) loss.
 
@@ -196,6 +197,8 @@ class Diffusion:
         error along its target normal, i.e. across the plane the point belongs on, weighs that much
         against the part along the plane: where the polycube's planes are what the extraction reads,
         a point slid along its face costs little and one off its plane a thin slab.
+        ``genus`` (``(B,)``, a model with ``ModelConfig.genus_classes``; -1: unknown): each pair's genus,
+        given to the model with its condition.
 
         Returns ``(loss, stats)`` where ``stats`` holds the float values of the L2 and L1
         terms and the weight used.
@@ -215,6 +218,8 @@ class Diffusion:
             noise = ot_pair_noise(x0, noise)
         x_t = self.q_sample(x0, t, noise)
         extra = {} if anchor is None else {"anchor": anchor}
+        if genus is not None:
+            extra["genus"] = genus
         ctx = autocast if autocast is not None else _null
         recycled = recycle > 0.0 and float(torch.rand((), generator=generator, device=dev)) < recycle
         if recycled:
@@ -343,6 +348,7 @@ class Diffusion:
         progress: Callable[[int, int], None] | None = None,
         anchor: torch.Tensor | None = None,
         recycles: int = 0,
+        genus=None,
     ) -> torch.Tensor:
         """Generate ``(B, n_out, point_dim)`` clouds in network units for conditions ``cond``.
 
@@ -354,6 +360,8 @@ class Diffusion:
 
         A recycling model (``model.config.recycle``) gets its latest clean estimate with every
         evaluation (zeros at the first), and each step evaluates it ``1 + recycles`` times.
+        ``genus`` (one int per condition, -1 unknown): the parts' genus, for a model that takes it
+        (``ModelConfig.genus_classes``; such a model given None is told "unknown").
         """
         B = cond.shape[0]
         dev = cond.device
@@ -361,7 +369,7 @@ class Diffusion:
         x = _randn((B, n_out, dim), dev, generator)
         ctx = autocast() if autocast is not None else _null()
         with ctx:
-            z_c = model.encode(cond, chunk=chunk)
+            z_c = model.encode(cond, chunk=chunk) if genus is None else model.encode(cond, chunk=chunk, genus=genus)
         pairs = self.timestep_pairs(steps, stride)
         recycling = bool(getattr(getattr(model, "config", None), "recycle", False))
         if recycles and not recycling:

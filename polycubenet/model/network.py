@@ -351,11 +351,34 @@ class PolycubeNet(nn.Module):
                                  config.local_ref)
         self.denoiser = Denoiser(config.denoiser, config.point_dim, config.encoder.dim, config.fourier,
                                  anchor_dim=config.anchor_dim, local=local, recycle=config.recycle)
+        self.genus = None
+        if config.genus_classes:
+            # one vector per genus class and one for "unknown", zero at first: the function of a file without them
+            self.genus = nn.Embedding(config.genus_classes + 1, config.encoder.dim)
+            nn.init.zeros_(self.genus.weight)
 
-    def encode(self, cond: torch.Tensor, chunk: int | None = None) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+    def genus_index(self, genus, batch: int, device) -> torch.Tensor:
+        """``(batch,)`` rows of the genus table for ``genus`` (None, or one int per condition; None or a
+        negative value: unknown; ``genus_classes - 1`` and more share the last class)."""
+        k = self.config.genus_classes
+        if genus is None:
+            return torch.full((batch,), k, dtype=torch.long, device=device)
+        g = torch.as_tensor(genus, dtype=torch.long, device=device).reshape(-1)
+        if g.shape[0] != batch:
+            raise ValueError(f"{g.shape[0]} genus values for {batch} conditions")
+        return torch.where(g < 0, torch.full_like(g, k), g.clamp(max=k - 1))
+
+    def encode(self, cond: torch.Tensor, chunk: int | None = None,
+               genus=None) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         """The condition tokens z_c; with a local context (``config.local_k``) ``(z_c, cond)``, which
-        :meth:`denoise` takes as it is."""
+        :meth:`denoise` takes as it is.  ``genus`` (a model with ``config.genus_classes``): each
+        condition's part genus (:meth:`genus_index`), its vector added to every token; a model
+        without them refuses one."""
         z = self.encoder(cond, chunk=chunk)
+        if self.genus is not None:
+            z = z + self.genus(self.genus_index(genus, z.shape[0], z.device)).to(z.dtype)[:, None]
+        elif genus is not None:
+            raise ValueError("this model takes no genus (ModelConfig.genus_classes is 0)")
         return (z, cond) if self.config.local_k else z
 
     def denoise(self, x_t: torch.Tensor, t: torch.Tensor, z_c: torch.Tensor, chunk: int | None = None,
@@ -364,8 +387,9 @@ class PolycubeNet(nn.Module):
         return self.denoiser(x_t, t, z_c, chunk=chunk, anchor=anchor, **extra)
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: torch.Tensor,
-                anchor: torch.Tensor | None = None, x0_prev: torch.Tensor | None = None) -> torch.Tensor:
-        return self.denoise(x_t, t, self.encode(cond), anchor=anchor, x0_prev=x0_prev)
+                anchor: torch.Tensor | None = None, x0_prev: torch.Tensor | None = None,
+                genus=None) -> torch.Tensor:
+        return self.denoise(x_t, t, self.encode(cond, genus=genus), anchor=anchor, x0_prev=x0_prev)
 
 
 def count_parameters(module: nn.Module) -> int:
