@@ -370,6 +370,15 @@ def test_device_batches_draw_what_the_numpy_builder_draws(shards):
         np.testing.assert_allclose(np.sort(a[0].numpy(), axis=0), np.sort(b[0].numpy(), axis=0), atol=1e-6)
 
 
+def _anchored_probe():
+    """A fixed input ``(x, t, cond, anchor)`` of a tiny anchored model with anchor normals."""
+    g = torch.Generator().manual_seed(0)
+    x, cond = torch.randn(2, 20, 6, generator=g), torch.randn(2, 30, 3, generator=g)
+    anchor = torch.cat([torch.randn(2, 20, 3, generator=g),
+                        torch.nn.functional.normalize(torch.randn(2, 20, 3, generator=g), dim=-1)], -1)
+    return x, torch.tensor([300, 900]), cond, anchor
+
+
 def test_a_local_context_model_starts_as_the_one_without_and_its_new_module_has_its_own_rate(shards, tmp_path):
     """``--init`` into a preset with a local context (``cpu-anchored-normals-local`` over
     ``cpu-anchored-normals``): its output projection starts at zero, so the model computes the old
@@ -381,11 +390,7 @@ def test_a_local_context_model_starts_as_the_one_without_and_its_new_module_has_
     train(shards, tmp_path / "old", dataclasses.replace(CFG, steps=3), progress=False, model_config=old_cfg)
     old = load_checkpoint(tmp_path / "old" / "last.pt").model.eval()
     new_cfg = dataclasses.replace(old_cfg, local_k=4)
-    g = torch.Generator().manual_seed(0)
-    x, cond = torch.randn(2, 20, 6, generator=g), torch.randn(2, 30, 3, generator=g)
-    anchor = torch.cat([torch.randn(2, 20, 3, generator=g),
-                        torch.nn.functional.normalize(torch.randn(2, 20, 3, generator=g), dim=-1)], -1)
-    t = torch.tensor([300, 900])
+    x, t, cond, anchor = _anchored_probe()
     frozen = dataclasses.replace(CFG, steps=4, warmup=0, lr=1e-2, fresh_lr_mult=0.0)
     train(shards, tmp_path / "frozen", dataclasses.replace(frozen, steps=2), progress=False, model_config=new_cfg,
           init=tmp_path / "old" / "last.pt")
@@ -508,11 +513,7 @@ def test_a_genus_model_starts_as_the_one_without_and_learns_the_genus_it_is_told
     train(shards, tmp_path / "old", dataclasses.replace(CFG, steps=2), progress=False, model_config=old_cfg)
     old = load_checkpoint(tmp_path / "old" / "last.pt").model.eval()
     new_cfg = dataclasses.replace(old_cfg, genus_classes=3)
-    g = torch.Generator().manual_seed(0)
-    x, cond = torch.randn(2, 20, 6, generator=g), torch.randn(2, 30, 3, generator=g)
-    anchor = torch.cat([torch.randn(2, 20, 3, generator=g),
-                        torch.nn.functional.normalize(torch.randn(2, 20, 3, generator=g), dim=-1)], -1)
-    t = torch.tensor([300, 900])
+    x, t, cond, anchor = _anchored_probe()
     train(shards, tmp_path / "zero", dataclasses.replace(CFG, steps=1, lr=0.0), progress=False, model_config=new_cfg,
           init=tmp_path / "old" / "last.pt")
     same = load_checkpoint(tmp_path / "zero" / "last.pt").model.eval()
