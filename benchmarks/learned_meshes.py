@@ -18,6 +18,11 @@ of the model's further draws instead of ``polycubenet.policy.LEARNED_DRAWS`` (``
 ``STEPS/SEED/FALLBACKS/TURN[/ANCHORS]`` joined by commas, FALLBACKS ``y``/``n``, TURN ``x``, ``y``, ``z`` or ``-``
 (none), ANCHORS ``uniform`` (the default) or ``even``, e.g. ``default`` against ``4/0/n/-,1/1/y/z`` (the
 policy's first two further draws, the second turned about z; session 36).
+
+``--mend-moves`` gives each arm the extraction's ``ExtractConfig.mend_moves`` (``default``: the config's; 0: no
+topology mends, the extraction before session 64), to compare the code with and without them on one checkpoint;
+the mends are a last resort, so ``--misses-only`` (the later arms only on the parts the first did not mesh) reads
+the same gains in a fraction of the time.
 """
 
 from __future__ import annotations
@@ -34,44 +39,66 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
-def _job(args: tuple[int, str, str, int, tuple | None]) -> tuple[int, str, list]:
-    arm, checkpoint, path, steps, draws = args
+def _job(args: tuple[int, str, str, int, tuple | None, int | None]) -> tuple[int, str, list]:
+    arm, checkpoint, path, steps, draws, mend_moves = args
     import torch
 
     torch.set_num_threads(1)
     from unseen_parts import mesh_learned
 
-    ((name, row),) = mesh_learned([Path(path)], checkpoint, steps, draws=draws).items()
+    ((name, row),) = mesh_learned([Path(path)], checkpoint, steps, draws=draws,
+                                     mend_moves=mend_moves).items()
     return arm, name, list(row)
 
 
 def compare(checkpoints: list[str], parts: list[Path], workers: int = 1,
-            draws: list[tuple | None] | None = None) -> list[dict[str, list]]:
+            draws: list[tuple | None] | None = None, mends: list[int | None] | None = None,
+            misses_only: bool = False) -> list[dict[str, list]]:
     """Per arm (a checkpoint, with its table of further draws from ``draws``: None for the policy's) part
-    name -> :func:`unseen_parts.mesh_learned`'s row, every checkpoint at its own default steps."""
+    name -> :func:`unseen_parts.mesh_learned`'s row, every checkpoint at its own default steps.  With
+    ``misses_only`` the arms after the first run only on the parts the first did not mesh, and take the first's
+    row (marked ``"baseline"`` at its end) for the others: for an arm that can only add a last resort to what
+    the first does (``--mend-moves``), not for another checkpoint."""
     from polycubenet.inference import resolve_steps
 
     draws = draws or [None] * len(checkpoints)
-    jobs = [(i, ck, str(p), int(resolve_steps(None, "cpu", ck)[1]), draws[i]) for i, ck in enumerate(checkpoints)
-            for p in parts]
+    mends = mends or [None] * len(checkpoints)
+
+    def jobs(arms, which):
+        return [(i, checkpoints[i], str(p), int(resolve_steps(None, "cpu", checkpoints[i])[1]), draws[i], mends[i])
+                for i in arms for p in which]
+
     out: list[dict[str, list]] = [{} for _ in checkpoints]
-    with ProcessPoolExecutor(max(1, workers)) as pool:
-        results = pool.map(_job, jobs) if workers > 1 else map(_job, jobs)
-        for done, (arm, name, row) in enumerate(results, 1):
-            out[arm][name] = row
-            print(f"[{done}/{len(jobs)}] {Path(checkpoints[arm]).name} (arm {arm + 1}) {name}: "
-                  f"{'meshed' if row[0] else 'not meshed'} ({row[3]} s)", flush=True)
+    done = 0
+
+    def run(todo) -> None:
+        nonlocal done
+        with ProcessPoolExecutor(max(1, workers)) as pool:
+            for arm, name, row in (pool.map(_job, todo) if workers > 1 else map(_job, todo)):
+                done += 1
+                out[arm][name] = row
+                print(f"[{done}] {Path(checkpoints[arm]).name} (arm {arm + 1}) {name}: "
+                      f"{'meshed' if row[0] else 'not meshed'} ({row[3]} s)", flush=True)
+
+    if not misses_only:
+        run(jobs(range(len(checkpoints)), parts))
+        return out
+    run(jobs([0], parts))
+    for arm in range(1, len(checkpoints)):
+        out[arm] = {k: list(v) + ["baseline"] for k, v in out[0].items() if v[0]}
+    run(jobs(range(1, len(checkpoints)), [p for p in parts if not out[0][p.stem][0]]))
     return out
 
 
 def summary(names: list[str], checkpoints: list[str], result: list[dict[str, list]],
-            draws: list[str] | None = None) -> list[dict]:
+            draws: list[str] | None = None, mends: list[int | None] | None = None) -> list[dict]:
     """One row per arm: meshed count, gained / lost parts against the first, seconds."""
     base = {k for k, v in result[0].items() if v[0]}
     rows = []
     for i, (name, ck) in enumerate(zip(names, checkpoints)):
         ok = {k for k, v in result[i].items() if v[0]}
         rows.append({"name": name, "checkpoint": ck, "draws": (draws or ["default"] * len(names))[i],
+                     "mend_moves": (mends or [None] * len(names))[i],
                      "meshed": len(ok), "parts": len(result[i]),
                      "gained": sorted(ok - base), "lost": sorted(base - ok),
                      "seconds": round(sum(v[3] for v in result[i].values()), 1)})
@@ -92,6 +119,10 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--draws", nargs="+", default=None,
                     help="one table of further draws per checkpoint (see above; default: the policy's)")
+    ap.add_argument("--mend-moves", nargs="+", default=None,
+                    help="the extraction's mend_moves per checkpoint (an integer or default; see above)")
+    ap.add_argument("--misses-only", action="store_true",
+                    help="the arms after the first only on the parts the first did not mesh (see compare)")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/learned_meshes.json"))
     args = ap.parse_args(argv)
     names = args.names or [Path(c).stem for c in args.checkpoints]
@@ -103,19 +134,25 @@ def main(argv=None) -> int:
         tables = [parse_draws(d) for d in args.draws] if args.draws else None
     except ValueError as exc:
         ap.error(str(exc))
+    if args.mend_moves is not None and len(args.mend_moves) != len(args.checkpoints):
+        ap.error("--mend-moves needs one value per checkpoint")
+    try:
+        mends = [None if m == "default" else int(m) for m in args.mend_moves] if args.mend_moves else None
+    except ValueError:
+        ap.error("--mend-moves takes integers or default")
     t0 = time.perf_counter()
     folder = Path(tempfile.mkdtemp(prefix="learned-meshes-"))
     parts = []
     for s in args.sets:
         family, seed = s.split(":")
         parts += [p for p, _ in make_parts(folder, args.count, int(seed), family)]
-    result = compare(args.checkpoints, parts, args.workers, tables)
-    rows = summary(names, args.checkpoints, result, args.draws)
+    result = compare(args.checkpoints, parts, args.workers, tables, mends, args.misses_only)
+    rows = summary(names, args.checkpoints, result, args.draws, mends)
     print(f"\n{'arm':<16} {'meshed':>9} {'seconds':>8}  gained / lost against {names[0]}")
     for r in rows:
         print(f"{r['name']:<16} {r['meshed']:>4} / {r['parts']:<3} {r['seconds']:>8}  +{len(r['gained'])} "
               f"{' '.join(r['gained'])} / -{len(r['lost'])} {' '.join(r['lost'])}")
-    write_json(args.json, {"sets": args.sets, "count": args.count, "summary": rows,
+    write_json(args.json, {"sets": args.sets, "count": args.count, "misses_only": args.misses_only, "summary": rows,
                            "rows": dict(zip(names, result)),
                            "seconds": round(time.perf_counter() - t0, 1)})
     print(f"wrote {args.json}")

@@ -427,7 +427,8 @@ def map_name(meta: dict) -> str:
 
 def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int = 0,
                  learned_maps: tuple[str, ...] | None = None, snap_planes: float | str | None = "default",
-                 draws: tuple | None = None, first_anchors: str = "uniform", spot_mend: bool = True) -> dict:
+                 draws: tuple | None = None, first_anchors: str = "uniform", spot_mend: bool = True,
+                 mend_moves: int | None = None) -> dict:
     """Mesh through the learned source only (``--polycube learned``: the first draw at ``steps``,
     then the model's further draws, ``polycubenet.policy.LEARNED_DRAWS``; no classical fallback), as
     ``mesh_part`` does: name -> (valid, faithful and at least the quality bar ``min_sj``, SJ min,
@@ -451,7 +452,7 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
         policy.LEARNED_DRAWS = draws
         try:
             return mesh_learned(paths, checkpoint, steps, draw_seed, learned_maps, snap_planes,
-                                first_anchors=first_anchors, spot_mend=spot_mend)
+                                first_anchors=first_anchors, spot_mend=spot_mend, mend_moves=mend_moves)
         finally:
             policy.LEARNED_DRAWS = saved
 
@@ -461,6 +462,8 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
         cfg = dataclasses.replace(cfg, learned_maps=tuple(learned_maps))
     if snap_planes != "default":
         cfg = dataclasses.replace(cfg, snap_planes=snap_planes)
+    if mend_moves is not None:
+        cfg = dataclasses.replace(cfg, extract=dataclasses.replace(cfg.extract, mend_moves=int(mend_moves)))
     if not spot_mend:
         cfg = dataclasses.replace(cfg, pullback=dataclasses.replace(cfg.pullback, capture_spots=False))
     for p in paths:

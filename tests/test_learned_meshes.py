@@ -38,3 +38,27 @@ def test_draw_tables_parse_like_the_policys():
     for bad in ("4/0/n", "4/0/maybe/-", "4/0/n/w", "4/0/n/-/1", "4/0/n/-/even/x"):
         with pytest.raises(ValueError):
             parse_draws(bad)
+
+
+def test_misses_only_runs_the_later_arms_on_the_first_arms_misses(monkeypatch):
+    import learned_meshes
+
+    ran = []
+
+    def fake_job(job):
+        arm, ck, path, steps, draws, mend_moves = job
+        name = Path(path).stem
+        ran.append((arm, name, mend_moves))
+        ok = name == "a" or (mend_moves == 3 and name == "c")
+        return arm, name, _row(ok, 1.0)
+
+    monkeypatch.setattr(learned_meshes, "_job", fake_job)
+    parts = [Path(f"/x/{n}.step") for n in "abc"]
+    out = learned_meshes.compare(["m.pt", "m.pt"], parts, mends=[0, 3], misses_only=True)
+    assert sorted(n for arm, n, _ in ran if arm == 1) == ["b", "c"]  # not a: the first arm meshed it
+    assert out[1]["a"][-1] == "baseline" and out[1]["c"][0] and not out[1]["b"][0]
+    rows = summary(["bare", "mend"], ["m.pt", "m.pt"], out)
+    assert rows[1]["gained"] == ["c"] and rows[1]["lost"] == [] and rows[1]["meshed"] == 2
+    ran.clear()
+    learned_meshes.compare(["m.pt", "m.pt"], parts, mends=[0, 3])
+    assert len(ran) == 6
