@@ -19,8 +19,8 @@ of the model's further draws instead of ``polycubenet.policy.LEARNED_DRAWS`` (``
 (none), ANCHORS ``uniform`` (the default) or ``even``, e.g. ``default`` against ``4/0/n/-,1/1/y/z`` (the
 policy's first two further draws, the second turned about z; session 36).
 
-``--mend-moves`` gives each arm the extraction's ``ExtractConfig.mend_moves`` (``default``: the config's; 0: no
-topology mends, the extraction before session 64), to compare the code with and without them on one checkpoint;
+``--mend-moves`` gives each arm the extraction's ``ExtractConfig.mend_moves`` (``default``: the config's, 0: no
+topology mends; session 64 measured 3), to compare the code with and without them on one checkpoint;
 the mends are a last resort, so ``--misses-only`` (the later arms only on the parts the first did not mesh) reads
 the same gains in a fraction of the time.
 """

@@ -23,12 +23,13 @@ with noise.  :func:`extract` works in four steps:
    cavity), genus equal to the part's, the cloud within a tolerance of the polycube
    surface (Chamfer) and the surface covered by the cloud.
 
-Optionally (``ExtractConfig.ramp_min_deg``, ``wide_bandwidth_spacings``; off by default, see there), a cloud
-that fails is tried again with its ramps flattened (:func:`flatten_ramps`: sloped patches of points, a
-generated cloud's copy of a slanted face, moved onto the axis face they stand for) and with a wider kernel.
-When all of those fail, the strict and the relaxed plane filter are tried once more with the occupancy's
-topology mended by moves of several cells (``ExtractConfig.mend_moves``, :mod:`polycubenet.topology`): a hole
-the vote filled punched again, a missing bridge filled, a stray component dropped, a spurious hole plugged.
+Optionally (``ExtractConfig.ramp_min_deg``, ``wide_bandwidth_spacings``; on by default since session 15, see
+there), a cloud that fails is tried again with its ramps flattened (:func:`flatten_ramps`: sloped patches of
+points, a generated cloud's copy of a slanted face, moved onto the axis face they stand for) and with a wider
+kernel.  Optionally too (``ExtractConfig.mend_moves``; off by default, see there), when all of those fail, the
+strict and the relaxed plane filter are tried once more with the occupancy's topology mended by moves of several
+cells (:mod:`polycubenet.topology`): a hole the vote filled punched again, a missing bridge filled, a stray
+component dropped, a spurious hole plugged.
 """
 
 from __future__ import annotations
@@ -118,8 +119,13 @@ class ExtractConfig:
     #: drop a stray component) to make it one; 0: none.  The last resort of :func:`extract`, tried only when
     #: every try above has failed (with the strict plane filter, then the relaxed one): tried earlier, it
     #: took clouds that a later try extracts exactly (held-out seed 2, 100 pairs, 132.40 h model: exact
-    #: 62 -> 60 %, genus match 95 -> 100 %).  A generator fallback (see ``for_exact_clouds``)
-    mend_moves: int = 3
+    #: 62 -> 60 %, genus match 95 -> 100 %); last, exact 62 -> 62 %, genus match 95 -> 100 %, none left
+    #: unextracted.  Off by default: on never-seen parts it meshed nothing more (machined 901 with the
+    #: 132.40 h file 11 -> 11 of 16; machined 811 / 812 and blocks 813 with the shipped file 41 -> 41 of 48,
+    #: ``benchmarks/results/s64_mend_fresh.json``), whose misses are pull-backs off the part, not
+    #: extractions, and it cost the misses it extracted a pull-back each (machined 811_011 8.6 -> 92.6 s).
+    #: Never for a classical flattening's cloud (``for_exact_clouds``)
+    mend_moves: int = 0
 
 
     def for_exact_clouds(self) -> "ExtractConfig":
@@ -131,7 +137,7 @@ class ExtractConfig:
 
 
 #: the fallbacks for generated clouds, as measured (``ExtractConfig()``'s own values since session 15)
-GENERATOR_FALLBACKS = {"ramp_min_deg": 10.0, "wide_bandwidth_spacings": 1.0, "mend_moves": 3}
+GENERATOR_FALLBACKS = {"ramp_min_deg": 10.0, "wide_bandwidth_spacings": 1.0}
 
 
 @dataclasses.dataclass

@@ -13,6 +13,10 @@ from polycubenet.structure import ExtractConfig, extract
 from polycubenet.topology import defects, mend, moves
 
 
+#: the extraction with the mends on (off by default)
+MENDS = ExtractConfig(mend_moves=3)
+
+
 def _hamming(truth: np.ndarray):
     return lambda occ: float((occ != truth).sum())
 
@@ -115,8 +119,10 @@ def test_extract_punches_the_hole_a_smeared_cloud_filled(seed):
     with pytest.raises(PolycubeError, match="genus 0 differs from the part's genus 1"):
         extract(P, N, genus=1, config=ExtractConfig(mend_moves=0))
     with pytest.raises(PolycubeError, match="genus 0 differs"):  # the classical flattening's clouds: no mends
-        extract(P, N, genus=1, config=ExtractConfig().for_exact_clouds())
-    got = extract(P, N, genus=1)
+        extract(P, N, genus=1, config=MENDS.for_exact_clouds())
+    with pytest.raises(PolycubeError, match="genus 0 differs"):  # the default: no mends (ExtractConfig.mend_moves)
+        extract(P, N, genus=1)
+    got = extract(P, N, genus=1, config=MENDS)
     assert got.meta["genus"] == 1 and (got.occupancy == truth.occupancy).all()
     assert got.meta["mended"].startswith("punch (was: genus 0); without the mends: ")
     assert "polycube genus 0 differs from the part's genus 1" in got.meta["mended"]
@@ -143,7 +149,7 @@ def test_a_mend_the_cloud_contradicts_is_rejected_with_the_first_reason(monkeypa
     V, F = polycube_surface(plate.xs, plate.ys, plate.zs, plate.occupancy)
     s = poisson_disk(V, F, 8192, seed=1)
     with pytest.raises(PolycubeError, match="genus 2 differs from the part's genus 1") as err:
-        extract(s.points, s.normals, genus=1, part="plate.step")
+        extract(s.points, s.normals, genus=1, part="plate.step", config=MENDS)
     assert "plate.step" in str(err.value)
     assert tried and None not in tried  # a mend (a plug, or a punch that opens a hole to the side) was made, and rejected
 
@@ -162,6 +168,6 @@ def test_the_mends_come_after_every_other_try(monkeypatch):
                      np.array([-0.05, 0.05]), occ)
     V, F = polycube_surface(truth.xs, truth.ys, truth.zs, truth.occupancy)
     s = poisson_disk(V, F, 2048, seed=0)
-    got = extract(s.points, s.normals, genus=1)
+    got = extract(s.points, s.normals, genus=1, config=MENDS)
     assert "relaxed_planes" in got.meta and "mended" not in got.meta and not calls
     assert (got.occupancy == occ).all()
