@@ -36,7 +36,7 @@ from .cleanup import remove_outliers
 from .errors import PolycubeError
 from .inference import generate, load_model
 from .polycube import compress, plane_offset, same_structure
-from .structure import extract
+from .structure import ExtractConfig, extract
 from .synth.shards import list_shards, load_shard
 
 
@@ -156,13 +156,13 @@ def _pairs(directory: str | Path, count: int):
             n += 1
 
 
-def _structure(P: np.ndarray, N: np.ndarray, gt, genus: int, part: str) -> dict:
+def _structure(P: np.ndarray, N: np.ndarray, gt, genus: int, part: str, config: ExtractConfig = ExtractConfig()) -> dict:
     """Outlier filter + extraction of a cloud, compared with the ground-truth polycube ``gt``."""
     try:
         P, N, _ = remove_outliers(P, N)
         # the pair's genus is given, as the pipeline gives the part's: a polycube of another genus is
         # rejected (and the extraction retries without its plane filter, see ExtractConfig)
-        poly = extract(P, N, genus=genus, part=part)
+        poly = extract(P, N, genus=genus, part=part, config=config)
     except PolycubeError as exc:
         return {"genus_got": None, "genus_match": False, "exact": False, "plane_offset": None, "planes_added": None,
                 "planes_missed": None, "error": str(exc)}
@@ -188,12 +188,13 @@ def plane_errors(poly, gt, tol: float = 0.02) -> tuple[int, int]:
 def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 8192, n_in: int | None = None,
              steps: int | None = 64, seed: int = 0, structure: bool = True, batch: int = 8, device: str | None = None,
              progress: bool = True, keep_clouds: int = 0, identity: bool = False, recycles: int | None = None,
-             generator=None) -> dict:
+             generator=None, extract_config: ExtractConfig = ExtractConfig()) -> dict:
     """Metrics of ``checkpoint`` on the first ``count`` pairs of the held-out shards ``data``.
 
     ``keep_clouds`` > 0 also returns ``clouds``: (condition, generated cloud, ground-truth
     points + normals) of the first that many pairs, for pictures.  ``generator``: a stand-in for
-    :func:`~polycubenet.inference.generate` with its signature (default: it), e.g. a mean of several draws."""
+    :func:`~polycubenet.inference.generate` with its signature (default: it), e.g. a mean of several draws.
+    ``extract_config``: the structure extraction's (default: the pipeline's)."""
     gen = generate if generator is None else generator
     loaded = load_model(checkpoint, device)
     items = list(_pairs(data, count))
@@ -249,7 +250,7 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
                 gt = s.polycube(k)
                 row["gt_thinnest_slab"] = thinnest_slab(gt)
                 row.update(_structure(cloud[:, :3].astype(float), cloud[:, 3:].astype(float), gt, row["genus"],
-                                      f"pair {row['seed']}"))
+                                      f"pair {row['seed']}", extract_config))
                 if identity:  # the trivial reference: the part's own samples and normals as the cloud (no model)
                     ref = _structure(cp_all, np.asarray(s["cond_normals"][k], float), gt, row["genus"], "identity")
                     row.update(exact_identity=ref["exact"], plane_offset_identity=ref["plane_offset"])
@@ -428,13 +429,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--identity", action="store_true",
                     help="also extract each pair's own samples (the no-model reference for exact structure)")
     ap.add_argument("--device")
+    ap.add_argument("--mend-moves", type=int, default=ExtractConfig.mend_moves,
+                    help="the extraction's topology mends (ExtractConfig.mend_moves; default: its default, none)")
     ap.add_argument("--json", help="write the metrics here")
     ap.add_argument("--publish", help="also write the shipped checkpoint (EMA, float16, metrics) here")
     args = ap.parse_args(argv)
     res = evaluate(args.checkpoint, args.data, args.count, n_out=args.n_out, n_in=args.n_in,
                    steps=(tuple(int(t) for t in args.timesteps.split(",")) if args.timesteps else args.steps or None),
                    seed=args.seed, structure=not args.no_structure, batch=args.batch,
-                   device=args.device, identity=args.identity, recycles=args.recycles)
+                   device=args.device, identity=args.identity, recycles=args.recycles,
+                   extract_config=ExtractConfig(mend_moves=args.mend_moves))
     summary = {k: v for k, v in res.items() if k != "rows"}
     print(json.dumps(summary, indent=1))
     if args.json:

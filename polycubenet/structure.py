@@ -120,10 +120,10 @@ class ExtractConfig:
     #: every try above has failed (with the strict plane filter, then the relaxed one): tried earlier, it
     #: took clouds that a later try extracts exactly (held-out seed 2, 100 pairs, 132.40 h model: exact
     #: 62 -> 60 %, genus match 95 -> 100 %); last, exact 62 -> 62 %, genus match 95 -> 100 %, none left
-    #: unextracted.  Off by default: on never-seen parts it meshed nothing more (machined 901 with the
-    #: 132.40 h file 11 -> 11 of 16; machined 811 / 812 and blocks 813 with the shipped file 41 -> 41 of 48,
-    #: ``benchmarks/results/s64_mend_fresh.json``), whose misses are pull-backs off the part, not
-    #: extractions, and it cost the misses it extracted a pull-back each (machined 811_011 8.6 -> 92.6 s).
+    #: unextracted.  Off by default: on never-seen parts it meshed nothing more (machined 811 / 812 and
+    #: blocks 813 with the shipped file 41 -> 41 of 48, ``benchmarks/results/s64_mend_fresh.json``), whose
+    #: misses are pull-backs off the part, not extractions, and it cost the misses it extracted a pull-back
+    #: each (machined 811_011 8.6 -> 92.6 s).
     #: Never for a classical flattening's cloud (``for_exact_clouds``)
     mend_moves: int = 0
 

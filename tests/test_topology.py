@@ -171,3 +171,13 @@ def test_the_mends_come_after_every_other_try(monkeypatch):
     got = extract(s.points, s.normals, genus=1, config=MENDS)
     assert "relaxed_planes" in got.meta and "mended" not in got.meta and not calls
     assert (got.occupancy == occ).all()
+
+
+def test_the_held_out_evaluation_extracts_with_the_config_it_is_given():
+    from polycubenet.evaluate import _structure
+
+    truth, P, N = _smeared_ring(0)
+    bare = _structure(P, N, truth, 1, "pair 0")
+    mended = _structure(P, N, truth, 1, "pair 0", MENDS)
+    assert not bare["genus_match"] and "genus 0 differs" in bare["error"]
+    assert mended["genus_match"] and mended["exact"] and mended["error"] is None
