@@ -42,9 +42,9 @@ from scipy.spatial import cKDTree
 
 from .data import Polycube
 from .errors import PolycubeError
-from .topology import defects, mend
 from .polycube import (cell_contacts, check_occupancy, compress, edge_cells, edge_contacts, nonmanifold_vertices,
                        one_solid_without_cavity, polycube_surface, solid_genus)
+from .topology import defects, mend
 
 
 @dataclasses.dataclass(frozen=True)
@@ -738,12 +738,7 @@ def _extract(points, normals, genus, config: ExtractConfig, part, validate) -> P
         if out is not None:
             reason = check_occupancy(occ) or f"genus {solid_genus(occ)}"
             occ, mended = out[0], f"{' + '.join(out[1])} (was: {reason})"
-    return _validated(occ, grid, costs, points, genus, config, part, validate, spacing, noise, mended)
 
-
-def _validated(occ, grid, costs, points, genus, config: ExtractConfig, part, validate, spacing, noise,
-               mended) -> Polycube:
-    """The polycube of the settled occupancy ``occ`` on ``grid``, validated (see :func:`extract`)."""
     reason = check_occupancy(occ)
     if reason is not None:
         raise PolycubeError(f"extracted occupancy is not a valid polycube: {reason}", part)
