@@ -44,7 +44,7 @@ from .data import Polycube
 from .errors import PolycubeError
 from .polycube import (cell_contacts, check_occupancy, compress, edge_cells, edge_contacts, nonmanifold_vertices,
                        one_solid_without_cavity, polycube_surface, solid_genus)
-from .topology import defects, mend
+from .topology import mend
 
 
 @dataclasses.dataclass(frozen=True)
@@ -733,11 +733,11 @@ def _extract(points, normals, genus, config: ExtractConfig, part, validate) -> P
         if check_occupancy(fixed) is None and check_occupancy(occ) is not None:
             occ = _polish(fixed, costs, config.polish_sweeps)
     mended = None
-    if config.mend_moves and defects(occ, genus if validate else None):
+    if config.mend_moves:  # the last resort of extract(): mend() returns None when there is nothing to mend
         out = mend(occ, lambda o: _total_cost(o, costs), genus if validate else None, config.mend_moves)
         if out is not None:
-            reason = check_occupancy(occ) or f"genus {solid_genus(occ)}"
-            occ, mended = out[0], f"{' + '.join(out[1])} (was: {reason})"
+            was = check_occupancy(occ) or f"genus {solid_genus(occ)}"
+            occ, mended = out[0], f"{' + '.join(out[1])} (was: {was})"
 
     reason = check_occupancy(occ)
     if reason is not None:
