@@ -417,18 +417,22 @@ def use_even_anchors() -> None:
 
 
 def map_name(meta: dict) -> str:
-    """The map that made a kept mesh, as the row's last column: ``registration``, ``exact`` (realised), or
+    """The map that made a kept mesh, as the row's last column: ``registration``, ``exact`` (realised),
     ``exact, N inserted`` where the realisation put back N thin slabs of the part
-    (:func:`polycubenet.realise.match_structure`)."""
+    (:func:`polycubenet.realise.match_structure`), or ``exact, part's structure`` where it kept the part's own
+    solid on the learned labels (``RealiseConfig.own_structure``)."""
     name = str(meta.get("map")).split(" (")[0]
-    inserted = (meta.get("realised") or {}).get("inserted_slabs") or 0
+    realised = meta.get("realised") or {}
+    if name == "exact" and realised.get("structure", "learned") != "learned":
+        return "exact, part's structure"
+    inserted = realised.get("inserted_slabs") or 0
     return f"{name}, {inserted} inserted" if name == "exact" and inserted else name
 
 
 def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int = 0,
                  learned_maps: tuple[str, ...] | None = None, snap_planes: float | str | None = "default",
                  draws: tuple | None = None, first_anchors: str = "uniform", spot_mend: bool = True,
-                 mend_moves: int | None = None) -> dict:
+                 mend_moves: int | None = None, own_structure: bool | None = None) -> dict:
     """Mesh through the learned source only (``--polycube learned``: the first draw at ``steps``,
     then the model's further draws, ``polycubenet.policy.LEARNED_DRAWS``; no classical fallback), as
     ``mesh_part`` does: name -> (valid, faithful and at least the quality bar ``min_sj``, SJ min,
@@ -441,7 +445,9 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
     ``draws``: the model's further draws (:func:`parse_draws`; None: ``policy.LEARNED_DRAWS``).
     ``first_anchors``: the first draw's anchor spread (``ModelSource(anchors=...)``; the further draws take
     theirs from the table).  ``spot_mend``: ``PullbackConfig.capture_spots`` (False: meshes off the part are not
-    mended, the code before session 45).  Each row ends with whether the kept mesh's spots were mended."""
+    mended, the code before session 45).  ``own_structure``: ``RealiseConfig.own_structure`` (None: the config's; False:
+    a realisation keeps the learned structure or nothing, the code before session 65).  Each row ends with whether
+    the kept mesh's spots were mended."""
     from polycubenet import policy
     from polycubenet.inference import ModelSource
     from polycubenet.pipeline import PipelineConfig, mesh_part
@@ -452,7 +458,8 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
         policy.LEARNED_DRAWS = draws
         try:
             return mesh_learned(paths, checkpoint, steps, draw_seed, learned_maps, snap_planes,
-                                first_anchors=first_anchors, spot_mend=spot_mend, mend_moves=mend_moves)
+                                first_anchors=first_anchors, spot_mend=spot_mend, mend_moves=mend_moves,
+                                own_structure=own_structure)
         finally:
             policy.LEARNED_DRAWS = saved
 
@@ -464,6 +471,8 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
         cfg = dataclasses.replace(cfg, snap_planes=snap_planes)
     if mend_moves is not None:
         cfg = dataclasses.replace(cfg, extract=dataclasses.replace(cfg.extract, mend_moves=int(mend_moves)))
+    if own_structure is not None and cfg.realise is not None:
+        cfg = dataclasses.replace(cfg, realise=dataclasses.replace(cfg.realise, own_structure=bool(own_structure)))
     if not spot_mend:
         cfg = dataclasses.replace(cfg, pullback=dataclasses.replace(cfg.pullback, capture_spots=False))
     for p in paths:

@@ -576,7 +576,8 @@ def pull_back_learned(poly: Polycube, corr, Vc: np.ndarray, F: np.ndarray, confi
                 break
             realised = _pull_back_classical(partition_polycube(exact.polycube, config), exact.map, Vc, F, config,
                                             diagonal, retry_below=config.min_sj)
-            realised.meta["map"] = "exact (realised)"
+            own = exact.map.meta.get("structure", "learned") != "learned"
+            realised.meta["map"] = "exact (realised, the part's structure)" if own else "exact (realised)"
             realised.meta["realised"] = {k: v for k, v in exact.map.meta.items() if k != "method"}
             realised.meta["realised"]["planar_patches"] = rc.planar_patches
             realised.meta["realised_polycube"] = exact.polycube.to_meta()

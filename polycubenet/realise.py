@@ -17,21 +17,27 @@ the part by 1-4 % of its diagonal although the structure is right.
 2. **Clean-up and flattening**, the classical construction's own steps
    (:mod:`polycubenet.classical`): Potts smoothing and chart repair with that cost, then the
    as-rigid-as-possible flattening onto the labels' planes (:func:`classical.flatten_labelled`).
-3. **The same structure, or nothing.**  The solid that the flattened surface bounds
+3. **The same structure, else the part's own.**  The solid that the flattened surface bounds
    (:func:`classical.flat_structure`, planes closer than :data:`MERGE_REL` of the learned
-   polycube's smallest cell merged) must have exactly the learned polycube's minimal grid and
+   polycube's smallest cell merged) is compared with the learned polycube's minimal grid and
    occupancy, up to slabs thinner than :data:`THIN_SLAB` on either side (:func:`match_structure`:
    a learned slab collapsed where the part has one plane, a thin slab of the part put back where the
-   learned polycube has one plane); otherwise :class:`~polycubenet.errors.PolycubeError` says how it differs and the
-   registration's map is used as before.  When it matches, each axis goes through the monotone
+   learned polycube has one plane).  When it matches, each axis goes through the monotone
    piecewise-linear map that sends the flattened planes onto the learned ones, so the flattened
    surface *is* the learned polycube's surface, and :class:`~polycubenet.classical.SurfaceMap`
-   maps it exactly (barycentric) onto the part.
+   maps it exactly (barycentric) onto the part.  When it does not, but is a valid polycube of the
+   learned one's genus (``RealiseConfig.own_structure``, on by default), that solid is kept: the
+   learned labels with a boss or step the generated cloud left out, whose faces the normals label
+   (:func:`_own_structure`; session 65: never-seen machined 812_011, 812_015 and blocks 813_006,
+   whose every draw missed a boss, meshed within the bars).  Otherwise
+   :class:`~polycubenet.errors.PolycubeError` says how it differs and the registration's map is used
+   as before.
 
 Provenance stays honest: the structure (cells, planes, genus) is the generated cloud's, up to the thin
 slabs :func:`match_structure` collapses or puts back (counted in the map's ``meta``: ``collapsed_slabs``,
-``inserted_slabs``); the map onto the part is computed by the classical deformation; nothing of the classical labelling
-(the normals' own labels) or the voxel grid enters.
+``inserted_slabs``), or, where the map's ``meta["structure"]`` says ``the part's (...)``, the part's own solid on
+the learned labels; the map onto the part is computed by the classical deformation; neither the classical
+labelling (the normals' own labels, without the learned votes) nor the voxel grid enters.
 """
 
 from __future__ import annotations
@@ -59,7 +65,7 @@ from .classical import (
 from .data import Polycube
 from .errors import PolycubeError
 from .frame import face_normals_areas
-from .polycube import compress, polycube_surface
+from .polycube import compress, polycube_surface, solid_genus
 from .sampling import poisson_disk
 
 #: samples of the learned polycube's surface sent through the registration's map
@@ -90,6 +96,7 @@ class RealiseConfig:
     merge_rel: float = MERGE_REL
     thin_slab: float = THIN_SLAB
     planar_patches: bool = True
+    own_structure: bool = True
     classical: ClassicalConfig = ClassicalConfig()
 
 
@@ -331,18 +338,41 @@ def realise(V: np.ndarray, F: np.ndarray, poly, map_points, config: RealiseConfi
     try:
         ga, gb, collapsed, inserted = match_structure(st["grid"], st["occupancy"], poly, config.thin_slab)
     except PolycubeError as exc:
-        raise PolycubeError(f"the part flattened on the learned labels differs from the learned polycube: {exc.args[0]}",
-                            part) from None
+        differs = f"the part flattened on the learned labels differs from the learned polycube: {exc.args[0]}"
+        learned_genus = poly.meta.get("genus")
+        learned_genus = int(solid_genus(poly.occupancy)) if learned_genus is None else int(learned_genus)
+        if not config.own_structure or st["genus"] != learned_genus:
+            raise PolycubeError(differs if config.own_structure else differs + " (the part's own structure is off)",
+                                part) from None
+        return _own_structure(Xp, Fs, Vs, st, poly, meta, exc.args[0], t0)
     # each axis: the flattened planes onto the learned ones (same count and order: the grids matched)
     Y = np.array(Xp, copy=True)
     for a in range(3):
         Y[:, a] = np.interp(Xp[:, a], ga[a], gb[a])
     _, occ = compress(list(st["grid"]), st["occupancy"])
-    meta.update(collapsed_slabs=collapsed, inserted_slabs=inserted, seconds=time.perf_counter() - t0)
+    meta.update(collapsed_slabs=collapsed, inserted_slabs=inserted, structure="learned", seconds=time.perf_counter() - t0)
     realised = Polycube(gb[0], gb[1], gb[2], occ, meta={**poly.meta, "realised": True, "collapsed_slabs": collapsed,
                                                         "inserted_slabs": inserted})
     return Realised(SurfaceMap(Y, Fs, Vs, meta={"method": "learned polycube, exact map by the classical deformation",
                                                 **meta}), realised)
+
+
+def _own_structure(Xp, Fs, Vs, st, poly, meta: dict, differs: str, t0: float) -> Realised:
+    """:func:`realise` where the flattened part bounds a valid polycube of the learned one's genus that is not the
+    learned structure (``RealiseConfig.own_structure``): that polycube, the flattened surface as it is (it lies on
+    its faces) and the exact map.  The labels that shaped it are still the learned polycube's, carried through the
+    registration (a boss or step the generated cloud left out, whose faces the normals give their own labels);
+    ``meta["structure"]`` says how the learned structure differed, and the polycube's meta carries it too."""
+    grid, occ = compress(list(st["grid"]), st["occupancy"])
+    meta.update(collapsed_slabs=0, inserted_slabs=0, structure=f"the part's ({differs})",
+                seconds=time.perf_counter() - t0)
+    own = Polycube(grid[0], grid[1], grid[2], occ,
+                   meta={**poly.meta, "realised": True, "own_structure": True, "genus": int(st["genus"]),
+                         "grid_shape": list(occ.shape), "learned_grid_shape": list(poly.occupancy.shape),
+                         "collapsed_slabs": 0, "inserted_slabs": 0})
+    return Realised(SurfaceMap(np.array(Xp, copy=True), Fs, Vs,
+                               meta={"method": "the part's structure on the learned labels, exact map by the "
+                                               "classical deformation", **meta}), own)
 
 
 def learned_map(V: np.ndarray, F: np.ndarray, poly, corr, config: RealiseConfig | None, seed: int = 0,

@@ -46,7 +46,8 @@ def test_misses_only_runs_the_later_arms_on_the_first_arms_misses(monkeypatch):
     ran = []
 
     def fake_job(job):
-        arm, ck, path, steps, draws, mend_moves = job
+        arm, ck, path, steps, draws, mend_moves, own = job
+        assert own is None
         name = Path(path).stem
         ran.append((arm, name, mend_moves))
         ok = name == "a" or (mend_moves == 3 and name == "c")
@@ -62,3 +63,26 @@ def test_misses_only_runs_the_later_arms_on_the_first_arms_misses(monkeypatch):
     ran.clear()
     learned_meshes.compare(["m.pt", "m.pt"], parts, mends=[0, 3])
     assert len(ran) == 6
+
+
+def test_the_own_structure_arm_is_passed_on_and_its_meshes_on_the_part_s_structure_are_counted(monkeypatch):
+    import learned_meshes
+
+    seen = []
+
+    def fake_job(job):
+        arm, ck, path, steps, draws, mend_moves, own = job
+        name = Path(path).stem
+        seen.append((arm, name, own))
+        row = _row(name == "a" or (own and name == "b"), 1.0)
+        if own and name == "b":
+            row[6] = "exact, part's structure"
+        return arm, name, row
+
+    monkeypatch.setattr(learned_meshes, "_job", fake_job)
+    parts = [Path(f"/x/{n}.step") for n in "ab"]
+    out = learned_meshes.compare(["m.pt", "m.pt"], parts, misses_only=True, owns=[False, True])
+    assert sorted(seen) == [(0, "a", False), (0, "b", False), (1, "b", True)]
+    rows = summary(["off", "on"], ["m.pt", "m.pt"], out, owns=[False, True])
+    assert [(r["meshed"], r["part_structure"], r["own_structure"]) for r in rows] == [(1, 0, False), (2, 1, True)]
+    assert rows[1]["gained"] == ["b"]

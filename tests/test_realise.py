@@ -12,7 +12,7 @@ from polycubenet.data import Polycube
 from polycubenet.errors import PolycubeError
 from polycubenet.polycube import polycube_surface
 from polycubenet.pullback import PullbackConfig
-from polycubenet.realise import match_structure, planar_patches, realise
+from polycubenet.realise import RealiseConfig, match_structure, planar_patches, realise
 from polycubenet.sampling import poisson_disk
 
 SLANT = 0.8  # the sheared end moves in x by SLANT * (height above the floor), canonical units (a 39 degree end)
@@ -79,7 +79,81 @@ def test_a_learned_polycube_of_another_structure_is_refused(slanted_l):
     lo, hi = V.min(axis=0), V.max(axis=0)
     box = Polycube(np.array([lo[0], hi[0]]), np.array([lo[1], hi[1]]), np.array([lo[2], hi[2]]), np.ones((1, 1, 1), bool))
     with pytest.raises(PolycubeError, match="learned labels"):
-        realise(V, F, box, lambda P: np.asarray(P, float))
+        realise(V, F, box, lambda P: np.asarray(P, float), RealiseConfig(own_structure=False))
+
+
+def _bumped_l(Vc):
+    """The L-block's polycube with a bump the part does not have: a half-cell on the floor's far end (x in
+    {0, 1, 2, 3}, z in {0, 1, 1.5, 2} before scaling), genus 0 like the L."""
+    lo, hi = Vc.min(axis=0), Vc.max(axis=0)
+    s = (hi[0] - lo[0]) / 3.0
+    xs, ys, zs = (lo[0] + s * np.array([0.0, 1.0, 2.0, 3.0]), lo[1] + s * np.array([0.0, 1.0]),
+                  lo[2] + s * np.array([0.0, 1.0, 1.5, 2.0]))
+    occ = np.zeros((3, 1, 3), dtype=bool)
+    occ[:, 0, 0] = True  # the floor
+    occ[0, 0, 1:] = True  # the upright arm
+    occ[2, 0, 1] = True  # the bump
+    return Polycube(xs, ys, zs, occ, meta={"genus": 0})
+
+
+def test_a_flattened_part_of_its_own_structure_is_kept_with_the_part_s_planes_or_refused_when_off(l_block_canonical):
+    """The learned polycube has a bump the L does not: on the learned labels the part flattens onto the L, a
+    valid polycube of the same genus but another structure.  With ``own_structure`` (the default) that solid is
+    kept, on the part's own planes, its map exact onto the part, and its meta says how the learned one differed;
+    without it the realisation is refused as before.  A flattened solid of another genus is refused either way."""
+    V, F = l_block_canonical
+    bumped = _bumped_l(V)
+    identity = lambda P: np.asarray(P, float)  # noqa: E731
+    got = realise(V, F, bumped, identity)
+    assert got.map.meta["structure"].startswith("the part's (") and "3x1x3" in got.map.meta["structure"]
+    assert got.polycube.meta["own_structure"] and got.polycube.meta["learned_grid_shape"] == [3, 1, 3]
+    np.testing.assert_array_equal(got.polycube.occupancy, _l_polycube(V).occupancy)
+    np.testing.assert_allclose(got.polycube.zs, _l_polycube(V).zs, atol=1e-9)  # the part's planes, not the learned
+    s = poisson_disk(*polycube_surface(got.polycube.xs, got.polycube.ys, got.polycube.zs, got.polycube.occupancy),
+                     2000, seed=4)
+    assert _on_polycube(got.map.Vp, got.polycube) < 1e-9
+    assert trimesh.proximity.closest_point(trimesh.Trimesh(V, F, process=False), got.map_points(s.points))[1].max() < 1e-6
+    with pytest.raises(PolycubeError, match="own structure is off"):
+        realise(V, F, bumped, identity, RealiseConfig(own_structure=False))
+    torus_genus = Polycube(bumped.xs, bumped.ys, bumped.zs, bumped.occupancy, meta={"genus": 1})
+    with pytest.raises(PolycubeError, match="3x1x3"):
+        realise(V, F, torus_genus, identity)
+    # without a genus in its meta the learned polycube's own is read off its cells
+    plain = Polycube(bumped.xs, bumped.ys, bumped.zs, bumped.occupancy)
+    assert realise(V, F, plain, identity).polycube.meta["own_structure"]
+
+
+def test_a_mesh_on_the_part_s_own_structure_says_so_in_its_map(l_block_canonical, monkeypatch):
+    """Through :func:`pull_back_learned`: the bumped polycube's registration mesh (the identity, made to read
+    as off the part) does not end the chain, the realisation keeps the part's structure, its mesh ends the chain
+    and its ``map`` says whose structure it is (the benchmarks' ``map_name`` reads it)."""
+    import sys
+
+    from polycubenet import pipeline
+    from polycubenet.pipeline import PipelineConfig, pull_back_learned
+    from polycubenet.policy import ends_chain
+
+    identity = lambda P: np.asarray(P, float)  # noqa: E731
+    real = pipeline.pull_back
+
+    def off_when_registered(mesh_pc, to_part, *a, **k):
+        m = real(mesh_pc, to_part, *a, **k)
+        if to_part is identity:  # the registration's map: as if 5 % off the part
+            m.meta["hausdorff"] = 0.05
+        return m
+
+    monkeypatch.setattr(pipeline, "pull_back", off_when_registered)
+
+    sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[1] / "benchmarks"))
+    from unseen_parts import map_name
+
+    V, F = l_block_canonical
+    cfg = PipelineConfig(target_hexes=800)
+    mesh, used = pull_back_learned(_bumped_l(V), _Map(identity), V, F, cfg)
+    assert mesh.meta["map"] == "exact (realised, the part's structure)" and ends_chain(mesh.meta, cfg.min_sj)
+    assert mesh.meta["realised"]["structure"].startswith("the part's (")
+    assert used.meta["own_structure"] and used.occupancy.sum() == 3
+    assert map_name(mesh.meta) == "exact, part's structure"
 
 
 def _bosses(top2: float):

@@ -71,6 +71,10 @@ def test_the_map_column_says_when_a_realisation_put_back_thin_slabs_of_the_part(
     assert unseen_parts.map_name({"map": "registration (why not the realisation)"}) == "registration"
     assert unseen_parts.map_name({"map": "exact (realised)", "realised": {"inserted_slabs": 0}}) == "exact"
     assert unseen_parts.map_name({"map": "exact (realised)", "realised": {"inserted_slabs": 2}}) == "exact, 2 inserted"
+    own = {"map": "exact (realised, the part's structure)",
+           "realised": {"inserted_slabs": 0, "structure": "the part's (1 cells differ from the learned polycube's)"}}
+    assert unseen_parts.map_name(own) == "exact, part's structure"
+    assert unseen_parts.map_name({"map": "exact (realised)", "realised": {"structure": "learned"}}) == "exact"
 
 
 def _surface_types(family: str, seed=(11, 7)) -> tuple[str, list[str]]:
