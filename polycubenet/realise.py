@@ -29,7 +29,7 @@ the part by 1-4 % of its diagonal although the structure is right.
    learned one's genus (``RealiseConfig.own_structure``, on by default), that solid is kept: the
    learned labels with a boss or step the generated cloud left out, whose faces the normals label
    (:func:`_own_structure`; session 65: never-seen machined 812_011, 812_015 and blocks 813_006,
-   whose every draw missed a boss, meshed within the bars).  Otherwise
+   whose realisations were all refused for another structure, meshed within the bars).  Otherwise
    :class:`~polycubenet.errors.PolycubeError` says how it differs and the registration's map is used
    as before.
 
@@ -299,7 +299,8 @@ def realise(V: np.ndarray, F: np.ndarray, poly, map_points, config: RealiseConfi
     Returns a :class:`Realised`: the polycube (``poly``, its thin slabs collapsed where the part has one
     plane: :func:`match_structure`) and a :class:`~polycubenet.classical.SurfaceMap` whose flattened
     surface lies on that polycube's surface (``meta``: labels, flips, collapsed slabs, seconds).  Raises
-    :class:`~polycubenet.errors.PolycubeError` when the flattened part does not bound the learned structure.
+    :class:`~polycubenet.errors.PolycubeError` when the flattened part does not bound the learned structure, nor
+    (``config.own_structure``) another valid polycube of its genus, which is then returned (:func:`_own_structure`).
     ``cache``: a dict shared by the calls for one polycube and map (the labelling :func:`variants`), which
     then decimate, measure and transfer the labels once.
     """
@@ -362,7 +363,8 @@ def _own_structure(Xp, Fs, Vs, st, poly, meta: dict, differs: str, t0: float) ->
     learned structure (``RealiseConfig.own_structure``): that polycube, the flattened surface as it is (it lies on
     its faces) and the exact map.  The labels that shaped it are still the learned polycube's, carried through the
     registration (a boss or step the generated cloud left out, whose faces the normals give their own labels);
-    ``meta["structure"]`` says how the learned structure differed, and the polycube's meta carries it too."""
+    ``meta["structure"]`` says how the learned structure differed; the polycube's meta marks it (``own_structure``,
+    ``learned_grid_shape``)."""
     grid, occ = compress(list(st["grid"]), st["occupancy"])
     meta.update(collapsed_slabs=0, inserted_slabs=0, structure=f"the part's ({differs})",
                 seconds=time.perf_counter() - t0)
