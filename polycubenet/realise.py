@@ -28,7 +28,7 @@ the part by 1-4 % of its diagonal although the structure is right.
    maps it exactly (barycentric) onto the part.  When it does not, but is a valid polycube of the
    learned one's genus (``RealiseConfig.own_structure``, on by default), that solid is kept: the
    learned labels with a boss or step the generated cloud left out, whose faces the normals label
-   (:func:`_own_structure`; session 65: never-seen machined 812_011, 812_015 and blocks 813_006,
+   (session 65: never-seen machined 812_011, 812_015 and blocks 813_006,
    whose realisations were all refused for another structure, meshed within the bars).  Otherwise
    :class:`~polycubenet.errors.PolycubeError` says how it differs and the registration's map is used
    as before.
@@ -299,8 +299,10 @@ def realise(V: np.ndarray, F: np.ndarray, poly, map_points, config: RealiseConfi
     Returns a :class:`Realised`: the polycube (``poly``, its thin slabs collapsed where the part has one
     plane: :func:`match_structure`) and a :class:`~polycubenet.classical.SurfaceMap` whose flattened
     surface lies on that polycube's surface (``meta``: labels, flips, collapsed slabs, seconds).  Raises
-    :class:`~polycubenet.errors.PolycubeError` when the flattened part does not bound the learned structure, nor
-    (``config.own_structure``) another valid polycube of its genus, which is then returned (:func:`_own_structure`).
+    :class:`~polycubenet.errors.PolycubeError` when the flattened part does not bound the learned structure,
+    nor (``config.own_structure``) another valid polycube of its genus, which is then returned on its own
+    planes (``meta["structure"]``: ``the part's (how it differs)``; the polycube's meta: ``own_structure``,
+    ``learned_grid_shape``).
     ``cache``: a dict shared by the calls for one polycube and map (the labelling :func:`variants`), which
     then decimate, measure and transfer the labels once.
     """
@@ -336,8 +338,11 @@ def realise(V: np.ndarray, F: np.ndarray, poly, map_points, config: RealiseConfi
             "time_label": t1 - t0, "time_flatten": time.perf_counter() - t1}
     if st["reason"] is not None:
         raise PolycubeError(f"the part flattened on the learned labels is not a polycube ({st['reason']})", part)
+    grid, occ = compress(list(st["grid"]), st["occupancy"])
+    pmeta = {**poly.meta, "realised": True}
     try:
         ga, gb, collapsed, inserted = match_structure(st["grid"], st["occupancy"], poly, config.thin_slab)
+        structure = "learned"
     except PolycubeError as exc:
         differs = f"the part flattened on the learned labels differs from the learned polycube: {exc.args[0]}"
         learned_genus = poly.meta.get("genus")
@@ -345,36 +350,22 @@ def realise(V: np.ndarray, F: np.ndarray, poly, map_points, config: RealiseConfi
         if not config.own_structure or st["genus"] != learned_genus:
             raise PolycubeError(differs if config.own_structure else differs + " (the part's own structure is off)",
                                 part) from None
-        return _own_structure(Xp, Fs, Vs, st, poly, meta, exc.args[0], t0)
+        # RealiseConfig.own_structure: the flattened part's own solid, on its own planes (the flattened surface
+        # lies on its faces as it is); the labels that shaped it are still the learned polycube's
+        ga = gb = grid
+        collapsed, inserted, structure = 0, 0, f"the part's ({exc.args[0]})"
+        pmeta.update(own_structure=True, genus=int(st["genus"]), grid_shape=list(occ.shape),
+                     learned_grid_shape=list(poly.occupancy.shape))
     # each axis: the flattened planes onto the learned ones (same count and order: the grids matched)
     Y = np.array(Xp, copy=True)
-    for a in range(3):
-        Y[:, a] = np.interp(Xp[:, a], ga[a], gb[a])
-    _, occ = compress(list(st["grid"]), st["occupancy"])
-    meta.update(collapsed_slabs=collapsed, inserted_slabs=inserted, structure="learned", seconds=time.perf_counter() - t0)
-    realised = Polycube(gb[0], gb[1], gb[2], occ, meta={**poly.meta, "realised": True, "collapsed_slabs": collapsed,
-                                                        "inserted_slabs": inserted})
-    return Realised(SurfaceMap(Y, Fs, Vs, meta={"method": "learned polycube, exact map by the classical deformation",
+    if structure == "learned":
+        for a in range(3):
+            Y[:, a] = np.interp(Xp[:, a], ga[a], gb[a])
+    meta.update(collapsed_slabs=collapsed, inserted_slabs=inserted, structure=structure, seconds=time.perf_counter() - t0)
+    realised = Polycube(gb[0], gb[1], gb[2], occ, meta={**pmeta, "collapsed_slabs": collapsed, "inserted_slabs": inserted})
+    method = ("learned polycube" if structure == "learned" else "the part's structure on the learned labels")
+    return Realised(SurfaceMap(Y, Fs, Vs, meta={"method": f"{method}, exact map by the classical deformation",
                                                 **meta}), realised)
-
-
-def _own_structure(Xp, Fs, Vs, st, poly, meta: dict, differs: str, t0: float) -> Realised:
-    """:func:`realise` where the flattened part bounds a valid polycube of the learned one's genus that is not the
-    learned structure (``RealiseConfig.own_structure``): that polycube, the flattened surface as it is (it lies on
-    its faces) and the exact map.  The labels that shaped it are still the learned polycube's, carried through the
-    registration (a boss or step the generated cloud left out, whose faces the normals give their own labels);
-    ``meta["structure"]`` says how the learned structure differed; the polycube's meta marks it (``own_structure``,
-    ``learned_grid_shape``)."""
-    grid, occ = compress(list(st["grid"]), st["occupancy"])
-    meta.update(collapsed_slabs=0, inserted_slabs=0, structure=f"the part's ({differs})",
-                seconds=time.perf_counter() - t0)
-    own = Polycube(grid[0], grid[1], grid[2], occ,
-                   meta={**poly.meta, "realised": True, "own_structure": True, "genus": int(st["genus"]),
-                         "grid_shape": list(occ.shape), "learned_grid_shape": list(poly.occupancy.shape),
-                         "collapsed_slabs": 0, "inserted_slabs": 0})
-    return Realised(SurfaceMap(np.array(Xp, copy=True), Fs, Vs,
-                               meta={"method": "the part's structure on the learned labels, exact map by the "
-                                               "classical deformation", **meta}), own)
 
 
 def learned_map(V: np.ndarray, F: np.ndarray, poly, corr, config: RealiseConfig | None, seed: int = 0,
