@@ -361,8 +361,10 @@ def realise(V: np.ndarray, F: np.ndarray, poly, map_points, config: RealiseConfi
     if structure == "learned":
         for a in range(3):
             Y[:, a] = np.interp(Xp[:, a], ga[a], gb[a])
-    meta.update(collapsed_slabs=collapsed, inserted_slabs=inserted, structure=structure, seconds=time.perf_counter() - t0)
-    realised = Polycube(gb[0], gb[1], gb[2], occ, meta={**pmeta, "collapsed_slabs": collapsed, "inserted_slabs": inserted})
+    meta.update(collapsed_slabs=collapsed, inserted_slabs=inserted, structure=structure,
+                seconds=time.perf_counter() - t0)
+    realised = Polycube(gb[0], gb[1], gb[2], occ,
+                        meta={**pmeta, "collapsed_slabs": collapsed, "inserted_slabs": inserted})
     method = ("learned polycube" if structure == "learned" else "the part's structure on the learned labels")
     return Realised(SurfaceMap(Y, Fs, Vs, meta={"method": f"{method}, exact map by the classical deformation",
                                                 **meta}), realised)
