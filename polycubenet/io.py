@@ -1074,28 +1074,8 @@ def _read_cad(path: Path, fmt: str, *, mesh_size: float | None, max_faces: int, 
         previous = gmsh.model.getCurrent() if gmsh.model.list() else None
         gmsh.model.add(f"polycubenet-load-{id(path)}")
         try:
-            _import_in_mm(gmsh, path, fmt)
-            if not gmsh.model.getEntities(2):
-                raise EmptyMeshError(path, f"the {fmt.upper()} file contains no surfaces or solids")
-            xmin, ymin, zmin, xmax, ymax, zmax = gmsh.model.getBoundingBox(-1, -1)
-            diag = math.dist((xmin, ymin, zmin), (xmax, ymax, zmax))
-            if not gmsh.model.getEntities(3):
-                # loose faces (IGES, surface-only STEP): sew them into shells so the mesh is conformal
-                with quiet_stdout():
-                    gmsh.model.occ.healShapes(tolerance=tol.CAD_SEW_REL * diag, sewFaces=True, makeSolids=True)
-                    gmsh.model.occ.synchronize()
-            solids = gmsh.model.getEntities(3)
-            if len(solids) > 1:
-                # a multi-body part: solids that touch (or overlap) become one solid, their shared faces
-                # inside it; solids that do not touch stay apart (and are refused as several components)
-                with quiet_stdout():
-                    gmsh.model.occ.fuse(solids[:1], solids[1:])
-                    gmsh.model.occ.synchronize()
-                after = len(gmsh.model.getEntities(3))
-                if repairs is not None and after < len(solids):
-                    repairs.append(f"fused {len(solids)} touching solids into {after}")
-            if solids:  # after the fuse: healing first would sew touching solids into non-manifold shells
-                _heal_solids(gmsh, repairs)
+            attempt: list[str] = []
+            diag, healed = _import_solid(gmsh, path, fmt, attempt, heal=True)
             surfaces = gmsh.model.getEntities(2)
             h = float(mesh_size) * scale if mesh_size is not None else tol.CAD_MESH_SIZE_REL * diag
             if not h > 0:
@@ -1115,7 +1095,23 @@ def _read_cad(path: Path, fmt: str, *, mesh_size: float | None, max_faces: int, 
             try:
                 gmsh.model.mesh.generate(2)
             except Exception as exc:
-                raise UnreadableFileError(path, f"gmsh could not mesh the surfaces ({_short(exc)})") from exc
+                if not healed:
+                    raise UnreadableFileError(path, f"gmsh could not mesh the surfaces ({_short(exc)})") from exc
+                # the heal can leave a surface gmsh cannot mesh where the solid as imported meshes (a quarter
+                # torus fused to cylinders: "Impossible to mesh periodic surface"): mesh it unhealed instead
+                gmsh.model.remove()
+                gmsh.model.add(f"polycubenet-load-{id(path)}-unhealed")
+                attempt = [f"kept the CAD solid as imported: after OpenCASCADE's ShapeFix gmsh could not mesh it "
+                           f"({_short(exc)})"]
+                _import_solid(gmsh, path, fmt, attempt, heal=False)
+                try:
+                    gmsh.model.mesh.generate(2)
+                except Exception as exc2:
+                    raise UnreadableFileError(
+                        path, f"gmsh could not mesh the surfaces, healed ({_short(exc)}) or as imported "
+                              f"({_short(exc2)})") from exc2
+            if repairs is not None:
+                repairs.extend(attempt)
             node_tags, coords, _ = gmsh.model.mesh.getNodes()
             _, tri_nodes = gmsh.model.mesh.getElementsByType(2)
         finally:
@@ -1134,6 +1130,36 @@ def _read_cad(path: Path, fmt: str, *, mesh_size: float | None, max_faces: int, 
         vertices /= scale
     meta = {"units": unit or "mm", "file_units": file_units, "mesh_size": h / scale}
     return vertices, faces, meta
+
+
+def _import_solid(gmsh, path: Path, fmt: str, repairs: list[str], *, heal: bool) -> tuple[float, bool]:
+    """Import the CAD file into the current gmsh model as closed solids in millimetres: loose faces sewn,
+    touching solids fused, and (``heal``) the solids healed.  Returns the bounding box's diagonal and whether
+    the heal ran."""
+    _import_in_mm(gmsh, path, fmt)
+    if not gmsh.model.getEntities(2):
+        raise EmptyMeshError(path, f"the {fmt.upper()} file contains no surfaces or solids")
+    xmin, ymin, zmin, xmax, ymax, zmax = gmsh.model.getBoundingBox(-1, -1)
+    diag = math.dist((xmin, ymin, zmin), (xmax, ymax, zmax))
+    if not gmsh.model.getEntities(3):
+        # loose faces (IGES, surface-only STEP): sew them into shells so the mesh is conformal
+        with quiet_stdout():
+            gmsh.model.occ.healShapes(tolerance=tol.CAD_SEW_REL * diag, sewFaces=True, makeSolids=True)
+            gmsh.model.occ.synchronize()
+    solids = gmsh.model.getEntities(3)
+    if len(solids) > 1:
+        # a multi-body part: solids that touch (or overlap) become one solid, their shared faces
+        # inside it; solids that do not touch stay apart (and are refused as several components)
+        with quiet_stdout():
+            gmsh.model.occ.fuse(solids[:1], solids[1:])
+            gmsh.model.occ.synchronize()
+        after = len(gmsh.model.getEntities(3))
+        if after < len(solids):
+            repairs.append(f"fused {len(solids)} touching solids into {after}")
+    healed = bool(solids) and heal  # after the fuse: healing first would sew touching solids into non-manifold shells
+    if healed:
+        _heal_solids(gmsh, repairs)
+    return diag, healed
 
 
 def _heal_solids(gmsh, repairs: list[str] | None) -> None:

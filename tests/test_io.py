@@ -661,6 +661,30 @@ def test_a_cad_solid_with_a_sliver_face_is_healed_before_meshing(tmp_path):
     assert not any("healed" in r for r in clean.meta["repairs"])
 
 
+def test_a_cad_solid_the_heal_leaves_unmeshable_is_meshed_as_imported(tmp_path):
+    """OpenCASCADE's ShapeFix can leave a solid gmsh cannot mesh where the solid as imported meshes: the hard
+    set's tube elbow (a quarter torus fused to two cylinders, bored) failed with "Impossible to mesh periodic
+    surface" and stopped the benchmark.  It now loads as imported, with genus 1, and says so in its repairs."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import hard_models
+
+    from polycubenet.io import gmsh_session, quiet_stdout
+
+    path = tmp_path / "tube_elbow.step"
+    with gmsh_session() as gmsh:
+        gmsh.model.add("elbow")
+        try:
+            hard_models.tube_elbow(gmsh.model.occ)
+            with quiet_stdout():
+                gmsh.write(str(path))
+        finally:
+            gmsh.model.remove()
+    part = load_part(path)
+    assert part.meta["genus"] == 1
+    assert any(r.startswith("kept the CAD solid as imported") and "periodic" in r for r in part.meta["repairs"]), \
+        part.meta["repairs"]
+
+
 def test_a_zero_area_cap_is_split_away_and_the_surface_stays_closed():
     """A CAD mesher can leave a *cap*: a zero-area triangle whose third vertex lies on its long edge, the
     other side of which is one face.  Dropping it would open three boundary edges; the loader splits that
