@@ -1074,13 +1074,11 @@ def _read_cad(path: Path, fmt: str, *, mesh_size: float | None, max_faces: int, 
         previous = gmsh.model.getCurrent() if gmsh.model.list() else None
         gmsh.model.add(f"polycubenet-load-{id(path)}")
         try:
-            attempt: list[str] = []
-            diag, healed = _import_solid(gmsh, path, fmt, attempt, heal=True)
-            surfaces = gmsh.model.getEntities(2)
+            diag = _import_solid(gmsh, path, fmt, repairs if repairs is not None else [], heal=True)
             h = float(mesh_size) * scale if mesh_size is not None else tol.CAD_MESH_SIZE_REL * diag
             if not h > 0:
                 raise ValueError(f"mesh_size must be positive; got {mesh_size}")
-            area = sum(gmsh.model.occ.getMass(2, tag) for _, tag in surfaces)
+            area = _surface_area(gmsh)
             estimate = int(area / (math.sqrt(3) / 4 * h * h))
             if estimate > max_faces:
                 raise TooLargeError(
@@ -1095,23 +1093,7 @@ def _read_cad(path: Path, fmt: str, *, mesh_size: float | None, max_faces: int, 
             try:
                 gmsh.model.mesh.generate(2)
             except Exception as exc:
-                if not healed:
-                    raise UnreadableFileError(path, f"gmsh could not mesh the surfaces ({_short(exc)})") from exc
-                # the heal can leave a surface gmsh cannot mesh where the solid as imported meshes (a quarter
-                # torus fused to cylinders: "Impossible to mesh periodic surface"): mesh it unhealed instead
-                gmsh.model.remove()
-                gmsh.model.add(f"polycubenet-load-{id(path)}-unhealed")
-                attempt = [f"kept the CAD solid as imported: after OpenCASCADE's ShapeFix gmsh could not mesh it "
-                           f"({_short(exc)})"]
-                _import_solid(gmsh, path, fmt, attempt, heal=False)
-                try:
-                    gmsh.model.mesh.generate(2)
-                except Exception as exc2:
-                    raise UnreadableFileError(
-                        path, f"gmsh could not mesh the surfaces, healed ({_short(exc)}) or as imported "
-                              f"({_short(exc2)})") from exc2
-            if repairs is not None:
-                repairs.extend(attempt)
+                raise UnreadableFileError(path, f"gmsh could not mesh the surfaces ({_short(exc)})") from exc
             node_tags, coords, _ = gmsh.model.mesh.getNodes()
             _, tri_nodes = gmsh.model.mesh.getElementsByType(2)
         finally:
@@ -1132,10 +1114,10 @@ def _read_cad(path: Path, fmt: str, *, mesh_size: float | None, max_faces: int, 
     return vertices, faces, meta
 
 
-def _import_solid(gmsh, path: Path, fmt: str, repairs: list[str], *, heal: bool) -> tuple[float, bool]:
+def _import_solid(gmsh, path: Path, fmt: str, repairs: list[str], *, heal: bool) -> float:
     """Import the CAD file into the current gmsh model as closed solids in millimetres: loose faces sewn,
-    touching solids fused, and (``heal``) the solids healed.  Returns the bounding box's diagonal and whether
-    the heal ran."""
+    touching solids fused, and (``heal``) the solids healed (:func:`_heal_solids`); what was done is appended
+    to ``repairs``.  Returns the bounding box's diagonal."""
     _import_in_mm(gmsh, path, fmt)
     if not gmsh.model.getEntities(2):
         raise EmptyMeshError(path, f"the {fmt.upper()} file contains no surfaces or solids")
@@ -1156,30 +1138,48 @@ def _import_solid(gmsh, path: Path, fmt: str, repairs: list[str], *, heal: bool)
         after = len(gmsh.model.getEntities(3))
         if after < len(solids):
             repairs.append(f"fused {len(solids)} touching solids into {after}")
-    healed = bool(solids) and heal  # after the fuse: healing first would sew touching solids into non-manifold shells
-    if healed:
-        _heal_solids(gmsh, repairs)
-    return diag, healed
+    if solids and heal:  # after the fuse: healing first would sew touching solids into non-manifold shells
+        _heal_solids(gmsh, path, fmt, repairs)
+    return diag
 
 
-def _heal_solids(gmsh, repairs: list[str] | None) -> None:
+def _heal_solids(gmsh, path: Path, fmt: str, repairs: list[str]) -> bool:
     """Heal the imported solids before meshing (OpenCASCADE's ShapeFix through gmsh, at its default 1e-8
     tolerance: degenerate, small and open edges and faces fixed, faces sewn): where a chamfer meets a fillet
     a kernel can leave a sliver face (0.03 mm² beside 3000 mm² ones, session 48's finished never-seen parts)
     that gmsh meshes for minutes into degenerate triangles or leaves empty, so the surface is not closed.
     On a clean solid it changes nothing (the ten examples mesh to the same triangles).  A heal that changes
-    the face or edge count is recorded in ``repairs``."""
+    the face or edge count is recorded in ``repairs``.
+
+    A heal that changes the surface's area by more than ``tol.CAD_HEAL_AREA_REL`` is undone (the file
+    imported again, unhealed, and that recorded): on a quarter torus fused to cylinders (the hard set's tube
+    elbows) the small-edge fix emptied a cylinder face of 1150 mm², and gmsh then failed on the periodic
+    faces or meshed for minutes without end.  Returns whether the heal was kept."""
     def counts():
         return len(gmsh.model.getEntities(2)), len(gmsh.model.getEntities(1))
 
-    before = counts()
+    before, area = counts(), _surface_area(gmsh)
     with quiet_stdout():
         gmsh.model.occ.healShapes()
         gmsh.model.occ.synchronize()
-    after = counts()
-    if repairs is not None and after != before:
+    after, healed_area = counts(), _surface_area(gmsh)
+    change = abs(healed_area - area) / max(area, 1e-300)
+    if change > tol.CAD_HEAL_AREA_REL:
+        name = gmsh.model.getCurrent()
+        gmsh.model.remove()
+        gmsh.model.add(name)
+        _import_solid(gmsh, path, fmt, [], heal=False)
+        repairs.append(f"kept the CAD solid as imported: OpenCASCADE's ShapeFix changed its surface area by "
+                       f"{100 * change:.2g} %")
+        return False
+    if after != before:
         repairs.append(f"healed the CAD solid (OpenCASCADE ShapeFix: small, degenerate and open edges and faces): "
                        f"{before[0]} faces and {before[1]} edges became {after[0]} and {after[1]}")
+    return True
+
+
+def _surface_area(gmsh) -> float:
+    return sum(gmsh.model.occ.getMass(2, tag) for _, tag in gmsh.model.getEntities(2))
 
 
 def _import_in_mm(gmsh, path: Path, fmt: str) -> None:

@@ -28,6 +28,9 @@ HAUSDORFF_REL_MAX = 0.01
 CAD_MESH_SIZE_REL = 0.02
 #: sewing tolerance for CAD faces that arrive unsewn (IGES, surface-only STEP), relative to the diagonal
 CAD_SEW_REL = 1e-6
+#: the most a CAD solid's surface area may change when it is healed (OpenCASCADE ShapeFix) before the heal is
+#: undone, relative
+CAD_HEAL_AREA_REL = 1e-3
 
 # --- outlier removal (polycubenet.cleanup) -------------------------------------------
 #: Phase I radius: tau = this * median L1 nearest-neighbour distance
