@@ -1074,7 +1074,8 @@ def _read_cad(path: Path, fmt: str, *, mesh_size: float | None, max_faces: int, 
         previous = gmsh.model.getCurrent() if gmsh.model.list() else None
         gmsh.model.add(f"polycubenet-load-{id(path)}")
         try:
-            diag = _import_solid(gmsh, path, fmt, repairs if repairs is not None else [], heal=True)
+            done: list[str] = []  # the repairs of this import, kept when it meshes
+            diag, healed = _import_solid(gmsh, path, fmt, done, heal=True)
             h = float(mesh_size) * scale if mesh_size is not None else tol.CAD_MESH_SIZE_REL * diag
             if not h > 0:
                 raise ValueError(f"mesh_size must be positive; got {mesh_size}")
@@ -1093,7 +1094,23 @@ def _read_cad(path: Path, fmt: str, *, mesh_size: float | None, max_faces: int, 
             try:
                 gmsh.model.mesh.generate(2)
             except Exception as exc:
-                raise UnreadableFileError(path, f"gmsh could not mesh the surfaces ({_short(exc)})") from exc
+                if not healed:
+                    raise UnreadableFileError(path, f"gmsh could not mesh the surfaces ({_short(exc)})") from exc
+                # a heal can keep the area and still break a face's boundary (a hemisphere's seam merged into
+                # one edge, the seeded capsule posts: "The 1D mesh seems not to be forming a closed loop")
+                name = gmsh.model.getCurrent()
+                gmsh.model.remove()
+                gmsh.model.add(name)
+                done = []
+                _import_solid(gmsh, path, fmt, done, heal=False)
+                done.append(f"kept the CAD solid as imported: healed, gmsh could not mesh it ({_short(exc)})")
+                try:
+                    gmsh.model.mesh.generate(2)
+                except Exception as exc2:
+                    raise UnreadableFileError(path, f"gmsh could not mesh the surfaces, healed ({_short(exc)}) or "
+                                                    f"as imported ({_short(exc2)})") from exc2
+            if repairs is not None:
+                repairs.extend(done)
             node_tags, coords, _ = gmsh.model.mesh.getNodes()
             _, tri_nodes = gmsh.model.mesh.getElementsByType(2)
         finally:
@@ -1114,10 +1131,10 @@ def _read_cad(path: Path, fmt: str, *, mesh_size: float | None, max_faces: int, 
     return vertices, faces, meta
 
 
-def _import_solid(gmsh, path: Path, fmt: str, repairs: list[str], *, heal: bool) -> float:
+def _import_solid(gmsh, path: Path, fmt: str, repairs: list[str], *, heal: bool) -> tuple[float, bool]:
     """Import the CAD file into the current gmsh model as closed solids in millimetres: loose faces sewn,
     touching solids fused, and (``heal``) the solids healed (:func:`_heal_solids`); what was done is appended
-    to ``repairs``.  Returns the bounding box's diagonal."""
+    to ``repairs``.  Returns the bounding box's diagonal and whether the solids are healed."""
     _import_in_mm(gmsh, path, fmt)
     if not gmsh.model.getEntities(2):
         raise EmptyMeshError(path, f"the {fmt.upper()} file contains no surfaces or solids")
@@ -1138,9 +1155,9 @@ def _import_solid(gmsh, path: Path, fmt: str, repairs: list[str], *, heal: bool)
         after = len(gmsh.model.getEntities(3))
         if after < len(solids):
             repairs.append(f"fused {len(solids)} touching solids into {after}")
-    if solids and heal:  # after the fuse: healing first would sew touching solids into non-manifold shells
-        _heal_solids(gmsh, path, fmt, repairs)
-    return diag
+    # after the fuse: healing first would sew touching solids into non-manifold shells
+    healed = bool(solids) and heal and _heal_solids(gmsh, path, fmt, repairs)
+    return diag, healed
 
 
 def _heal_solids(gmsh, path: Path, fmt: str, repairs: list[str]) -> bool:
