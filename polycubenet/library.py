@@ -58,7 +58,9 @@ SIDECAR_SUFFIX = ".polycube.npz"
 
 #: bump a stage's version when its code changes what it writes: every key downstream changes
 STAGE_VERSIONS = {
-    "load_sample": "2",  # 2: CAD solids healed before meshing, zero-area caps split, sharpest_edge_deg
+    # 2: CAD solids healed before meshing, zero-area caps split, sharpest_edge_deg; 3: a heal that changes the
+    # surface's area or that gmsh cannot mesh is undone
+    "load_sample": "3",
     "polycube": "1",
     "extract": "4",  # 2: carries the classical exact map; 3: the voxel solid taken as built; 4: no plane refit
     "register": "2",  # 2: the classical exact map replaces CPD
@@ -66,8 +68,9 @@ STAGE_VERSIONS = {
     # 5: no-pillow retry; 6: uncovered spots mended (pullback.mend_spots); 7: no mend past capture_max (4 %)
     # 8: a few poor hexes eased with surface slack (pullback.ease_poor_hexes); 9: no second labelling after a
     # realisation whose flattened part does not bound the learned structure; 10: a learned draw's file is its
-    # registration map's mesh alone, the rest of its pull-back a second file (policy.run_chain decides when)
-    "pullback": "10",
+    # registration map's mesh alone, the rest of its pull-back a second file (policy.run_chain decides when);
+    # 11: a realisation may keep the part's own structure on the learned labels (RealiseConfig.own_structure)
+    "pullback": "11",
     "export": "1",
 }
 #: stage names in pipeline order (what ``stage reached`` in the manifest refers to)
