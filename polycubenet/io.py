@@ -1097,10 +1097,8 @@ def _read_cad(path: Path, fmt: str, *, mesh_size: float | None, max_faces: int, 
                 if not healed:
                     raise UnreadableFileError(path, f"gmsh could not mesh the surfaces ({_short(exc)})") from exc
                 # a heal can keep the area and still break a face's boundary (a hemisphere's seam merged into
-                # one edge, the seeded capsule posts: "The 1D mesh seems not to be forming a closed loop")
-                name = gmsh.model.getCurrent()
-                gmsh.model.remove()
-                gmsh.model.add(name)
+                # one edge, the hard set's capsule posts: "The 1D mesh seems not to be forming a closed loop")
+                _empty_model(gmsh)
                 done = []
                 _import_solid(gmsh, path, fmt, done, heal=False)
                 done.append(f"kept the CAD solid as imported: healed, gmsh could not mesh it ({_short(exc)})")
@@ -1182,9 +1180,7 @@ def _heal_solids(gmsh, path: Path, fmt: str, repairs: list[str]) -> bool:
     after, healed_area = counts(), _surface_area(gmsh)
     change = abs(healed_area - area) / max(area, 1e-300)
     if change > tol.CAD_HEAL_AREA_REL:
-        name = gmsh.model.getCurrent()
-        gmsh.model.remove()
-        gmsh.model.add(name)
+        _empty_model(gmsh)
         _import_solid(gmsh, path, fmt, [], heal=False)
         repairs.append(f"kept the CAD solid as imported: OpenCASCADE's ShapeFix changed its surface area by "
                        f"{100 * change:.2g} %")
@@ -1193,6 +1189,13 @@ def _heal_solids(gmsh, path: Path, fmt: str, repairs: list[str]) -> bool:
         repairs.append(f"healed the CAD solid (OpenCASCADE ShapeFix: small, degenerate and open edges and faces): "
                        f"{before[0]} faces and {before[1]} edges became {after[0]} and {after[1]}")
     return True
+
+
+def _empty_model(gmsh) -> None:
+    """The current gmsh model removed and added again, empty, under its name."""
+    name = gmsh.model.getCurrent()
+    gmsh.model.remove()
+    gmsh.model.add(name)
 
 
 def _surface_area(gmsh) -> float:
