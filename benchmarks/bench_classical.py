@@ -194,7 +194,7 @@ def main(argv=None) -> int:
 
         names = args.models or None
         hard_dir = args.hard_dir or (HARD if args.hard_seed is None else default_folder(args.hard_seed))
-        files += [(f, hard_set) for f in make_all(hard_dir, names=names, seed=args.hard_seed)]
+        files += [(f, hard_set) for f in make_all(hard_dir, names=names, seed=args.hard_seed, keep_going=True)]
     if args.models:
         files = [(f, s) for f, s in files if f.stem in args.models]
     need_learned = any(m in ("auto", "learned") for m in args.modes)

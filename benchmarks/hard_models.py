@@ -458,16 +458,34 @@ def default_folder(seed: int | None = None) -> Path:
 
 
 def make_all(folder: str | Path | None = None, names=None, check: bool = True, verbose: bool = False,
-             seed: int | None = None) -> list[Path]:
+             seed: int | None = None, keep_going: bool = False) -> list[Path]:
     """Write every model (or those in ``names``) as ``<folder>/<name>.step`` (``folder`` defaults to
     :func:`default_folder`); with an integer ``seed``, the seeded variants.  Returns the paths.
-    The files are rebuilt every time (a few seconds; the bytes are the same each run)."""
+    The files are rebuilt every time (a few seconds; the bytes are the same each run).
+
+    ``keep_going``: a model that does not build or fails its check does not stop the set (a benchmark over the
+    set, ``bench_classical.py``): a line on stderr names it and the problem, and a model whose STEP file was
+    written is still returned, so that the benchmark's own load reports it as a failed part; one that was not
+    written is left out.  Without it the first failure raises, as a test of the models wants."""
     folder = default_folder(seed) if folder is None else Path(folder)
     paths = []
     for spec in SPECS:
         if names and spec.name not in names:
             continue
-        row = build(spec.name, folder / f"{spec.name}.step", check=check, seed=seed)
+        path = folder / f"{spec.name}.step"
+        path.unlink(missing_ok=True)  # a failed build must not leave an earlier run's file behind
+        try:
+            row = build(spec.name, path, check=check, seed=seed)
+        except Exception as exc:  # noqa: BLE001 - OpenCASCADE and the loader raise many kinds
+            if not keep_going:
+                raise
+            kept = path.is_file()
+            print(f"hard model {spec.name}{'' if seed is None else f' (seed {seed})'}: {type(exc).__name__}: {exc}"
+                  f" -- {'kept for the benchmark to report' if kept else 'left out (no STEP file)'}",
+                  file=sys.stderr, flush=True)
+            if kept:
+                paths.append(path)
+            continue
         if verbose:
             vol = "-" if row["volume"] is None else f"{row['volume']:.0f}"
             print(f"{spec.name:<18} genus {row['genus']:>2}  volume {vol:>9} mm^3  {row['description']}", flush=True)

@@ -347,9 +347,13 @@ def realise(V: np.ndarray, F: np.ndarray, poly, map_points, config: RealiseConfi
         differs = f"the part flattened on the learned labels differs from the learned polycube: {exc.args[0]}"
         learned_genus = poly.meta.get("genus")
         learned_genus = int(solid_genus(poly.occupancy)) if learned_genus is None else int(learned_genus)
-        if not config.own_structure or st["genus"] != learned_genus:
-            raise PolycubeError(differs if config.own_structure else differs + " (the part's own structure is off)",
-                                part) from None
+        if not config.own_structure:
+            raise PolycubeError(differs + " (the part's own structure is off)", part) from None
+        if st["genus"] != learned_genus:
+            # the flattening closed or opened a tunnel (a hole wall labelled like its neighbour, a breakout
+            # through a slanted end): say so, it is a different miss from another cell layout
+            raise PolycubeError(f"{differs}; it is of genus {int(st['genus'])}, the learned polycube of genus "
+                                f"{learned_genus}", part) from None
         # RealiseConfig.own_structure: the flattened part's own solid, on its own planes (the flattened surface
         # lies on its faces as it is); the labels that shaped it are still the learned polycube's
         ga = gb = grid
