@@ -34,8 +34,10 @@ for r in $(seq 1 12); do
     $S --out "$DATA/turned13" --count $n --seed 13 --turned 1.0 --bolt-circles 0.75 && link turned13 c-
   fi
   if [ "$r" -le 3 ]; then
-    $S --out "$DATA/flanges14" --count $n --seed 14 --turned 1.0 --bolt-circles 0.75 --flanges 1.0 && link flanges14 d-14-
-    $S --out "$DATA/flanges15" --count $n --seed 15 --turned 1.0 --bolt-circles 0.75 --flanges 1.0 && link flanges15 d-15-
+    for seed in 14 15; do
+      $S --out "$DATA/flanges$seed" --count $n --seed $seed --turned 1.0 --bolt-circles 0.75 --flanges 1.0 &&
+        link "flanges$seed" "d-$seed-"
+    done
   fi
   echo "round $r of 12: $(ls "$DATA/mixf" | wc -l) shards in $DATA/mixf ($(date +%H:%M))"
 done
