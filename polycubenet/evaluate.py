@@ -431,6 +431,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device")
     ap.add_argument("--mend-moves", type=int, default=ExtractConfig.mend_moves,
                     help="the extraction's topology mends (ExtractConfig.mend_moves; default: its default, none)")
+    ap.add_argument("--no-sheets", action="store_true",
+                    help="the extraction merges close planes that face opposite ways, as before session 70 "
+                         "(ExtractConfig.sheet_bandwidths=None)")
     ap.add_argument("--json", help="write the metrics here")
     ap.add_argument("--publish", help="also write the shipped checkpoint (EMA, float16, metrics) here")
     args = ap.parse_args(argv)
@@ -438,7 +441,8 @@ def main(argv: list[str] | None = None) -> int:
                    steps=(tuple(int(t) for t in args.timesteps.split(",")) if args.timesteps else args.steps or None),
                    seed=args.seed, structure=not args.no_structure, batch=args.batch,
                    device=args.device, identity=args.identity, recycles=args.recycles,
-                   extract_config=ExtractConfig(mend_moves=args.mend_moves))
+                   extract_config=ExtractConfig(mend_moves=args.mend_moves,
+                                                **({"sheet_bandwidths": None} if args.no_sheets else {})))
     summary = {k: v for k, v in res.items() if k != "rows"}
     print(json.dumps(summary, indent=1))
     if args.json:

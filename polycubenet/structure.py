@@ -60,8 +60,11 @@ class ExtractConfig:
     #: model: exact structure 0.0 -> 0.2-0.4 with 0.35-0.5 spacings; 1.0 merges real steps)
     min_bandwidth: float = 1e-3
     min_bandwidth_spacings: float = 0.4
-    #: planes closer than ``merge_sigmas`` bandwidths are one plane
+    #: planes closer than ``merge_sigmas`` bandwidths are one plane ...
     merge_sigmas: float = 2.0
+    #: ... unless they are at least this many bandwidths apart and their points face opposite ways: the two
+    #: faces of a plate or slit thinner than the merge distance (None: merged like any two planes)
+    sheet_bandwidths: float | None = 1.0
     #: a plane needs at least this many points (absolute) ...
     min_plane_points: int = 3
     #: ... and at least this fraction of the points of its axis
@@ -300,7 +303,8 @@ def noise_level(points: np.ndarray, axis: np.ndarray, k: int = 10) -> float:
     return float(np.median(np.concatenate(spreads)))
 
 
-def cluster_planes(coords: np.ndarray, bandwidth: float, min_points: int, merge: float) -> np.ndarray:
+def cluster_planes(coords: np.ndarray, bandwidth: float, min_points: int, merge: float,
+                   signs: np.ndarray | None = None, sheet: float | None = None) -> np.ndarray:
     """Plane coordinates ``(P,)`` (sorted) from 1-D ``coords`` by kernel-density peaks.
 
     Parameters
@@ -309,8 +313,17 @@ def cluster_planes(coords: np.ndarray, bandwidth: float, min_points: int, merge:
     bandwidth : float, Gaussian kernel width
     min_points : int, peaks with fewer points within ``2.5 * bandwidth`` are dropped
     merge : float, peaks closer than this are merged (weighted by their point counts)
+    signs : (K,) or None, the points' normal signs along the axis
+    sheet : float or None, with ``signs``: two peaks at least this far apart whose points face opposite
+        ways (each at least :data:`SHEET_SIGN_FRACTION` one way) are not merged: the two faces of a plate or
+        a slit thinner than ``merge``, which one plane would turn into a sheet of no thickness
     """
-    coords = np.sort(np.asarray(coords, dtype=np.float64))
+    coords = np.asarray(coords, dtype=np.float64)
+    if signs is not None:
+        order = np.argsort(coords)
+        coords, signs = coords[order], np.asarray(signs)[order] > 0
+    else:
+        coords = np.sort(coords)
     if len(coords) == 0:
         return coords
     lo, hi = coords[0] - 4 * bandwidth, coords[-1] + 4 * bandwidth
@@ -321,30 +334,58 @@ def cluster_planes(coords: np.ndarray, bandwidth: float, min_points: int, merge:
     # the spurious planes are dropped by reduce_polycube once the occupancy is known
     interior = (dens[1:-1] > dens[:-2]) & (dens[1:-1] >= dens[2:])
     peaks = lo + (np.flatnonzero(interior) + 1 + 0.5) * step
-    planes, weights = [], []
+    planes, weights, ups = [], [], []
     for p in peaks:
-        sel = coords[np.abs(coords - p) <= 1.5 * bandwidth]
-        if len(sel) < min_points:
+        near = np.abs(coords - p) <= 1.5 * bandwidth
+        if near.sum() < min_points:
             continue
+        same = np.ones(len(coords), bool)
+        up = 0.5
+        if signs is not None and sheet is not None:
+            # the way the peak's own points face (within half a bandwidth); a peak that faces one way is
+            # placed by the points that face that way only, so that a close opposite face does not pull it
+            core = np.abs(coords - p) <= 0.5 * bandwidth
+            up = float(signs[core].mean()) if core.any() else float(signs[near].mean())
+            if _facing(up):
+                same = signs == (up > 0.5)
+                near &= same
+                if not near.any():
+                    continue
         # trimmed mean around the peak, iterated once for sub-bin accuracy
-        c = sel.mean()
-        sel = coords[np.abs(coords - c) <= 1.5 * bandwidth]
-        planes.append(sel.mean() if len(sel) else c)
-        weights.append(len(sel))
+        c = coords[near].mean()
+        near = (np.abs(coords - c) <= 1.5 * bandwidth) & same
+        planes.append(coords[near].mean() if near.any() else c)
+        weights.append(int(near.sum()))
+        ups.append(up)
     if not planes:
         return np.zeros(0)
     order = np.argsort(planes)
     planes, weights = list(np.asarray(planes)[order]), list(np.asarray(weights, float)[order])
-    merged_p, merged_w = [planes[0]], [weights[0]]
-    for p, w in zip(planes[1:], weights[1:]):
-        if p - merged_p[-1] < merge:
+    ups = list(np.asarray(ups)[order])
+    merged_p, merged_w, merged_u = [planes[0]], [weights[0]], [ups[0]]
+    for p, w, u in zip(planes[1:], weights[1:], ups[1:]):
+        apart = p - merged_p[-1]
+        two_faces = (signs is not None and sheet is not None and apart >= sheet
+                     and _facing(merged_u[-1]) * _facing(u) < 0)
+        if apart < merge and not two_faces:
             tw = merged_w[-1] + w
             merged_p[-1] = (merged_p[-1] * merged_w[-1] + p * w) / tw
+            merged_u[-1] = (merged_u[-1] * merged_w[-1] + u * w) / tw
             merged_w[-1] = tw
         else:
             merged_p.append(p)
             merged_w.append(w)
+            merged_u.append(u)
     return np.asarray(merged_p)
+
+
+#: a peak faces one way when at least this fraction of its points' normals point that way (:func:`cluster_planes`)
+SHEET_SIGN_FRACTION = 0.8
+
+
+def _facing(up: float) -> int:
+    """+1 / -1 when a peak's fraction of positive normals says it faces up / down, 0 when it is mixed."""
+    return 1 if up >= SHEET_SIGN_FRACTION else -1 if up <= 1.0 - SHEET_SIGN_FRACTION else 0
 
 
 def _face_evidence(points, axis, sign, grid, density, plane_tol) -> _Evidence:
@@ -715,7 +756,8 @@ def _extract(points, normals, genus, config: ExtractConfig, part, validate) -> P
     for a in range(3):
         c = points[axis == a, a]
         min_pts = max(config.min_plane_points, int(config.min_plane_fraction * len(c)))
-        planes = cluster_planes(c, bw, min_pts, config.merge_sigmas * bw)
+        sheet = None if config.sheet_bandwidths is None else config.sheet_bandwidths * bw
+        planes = cluster_planes(c, bw, min_pts, config.merge_sigmas * bw, signs=sign[axis == a], sheet=sheet)
         if len(planes) < 2:
             raise PolycubeError(f"found {len(planes)} plane(s) normal to axis {'xyz'[a]}; a polycube needs >= 2", part)
         grid.append(planes)

@@ -46,7 +46,7 @@ def test_misses_only_runs_the_later_arms_on_the_first_arms_misses(monkeypatch):
     ran = []
 
     def fake_job(job):
-        arm, ck, path, steps, draws, mend_moves, own = job
+        arm, ck, path, steps, draws, mend_moves, own, sheets = job
         assert own is None
         name = Path(path).stem
         ran.append((arm, name, mend_moves))
@@ -71,7 +71,7 @@ def test_the_own_structure_arm_is_passed_on_and_its_meshes_on_the_part_s_structu
     seen = []
 
     def fake_job(job):
-        arm, ck, path, steps, draws, mend_moves, own = job
+        arm, ck, path, steps, draws, mend_moves, own, sheets = job
         name = Path(path).stem
         seen.append((arm, name, own))
         row = _row(name == "a" or (own and name == "b"), 1.0)
@@ -86,3 +86,22 @@ def test_the_own_structure_arm_is_passed_on_and_its_meshes_on_the_part_s_structu
     rows = summary(["off", "on"], ["m.pt", "m.pt"], out, owns=[False, True])
     assert [(r["meshed"], r["part_structure"], r["own_structure"]) for r in rows] == [(1, 0, False), (2, 1, True)]
     assert rows[1]["gained"] == ["b"]
+
+
+def test_the_sheets_arm_reaches_each_job_and_the_summary(monkeypatch):
+    import learned_meshes
+
+    seen = []
+
+    def fake_job(job):
+        arm, ck, path, steps, draws, mend_moves, own, sheets = job
+        name = Path(path).stem
+        seen.append((arm, name, sheets))
+        return arm, name, _row(name == "a" or (sheets is not False and name == "b"), 1.0)
+
+    monkeypatch.setattr(learned_meshes, "_job", fake_job)
+    parts = [Path(f"/x/{n}.step") for n in "ab"]
+    out = learned_meshes.compare(["m.pt", "m.pt"], parts, sheets=[None, False])
+    assert sorted(seen) == [(0, "a", None), (0, "b", None), (1, "a", False), (1, "b", False)]
+    rows = summary(["on", "off"], ["m.pt", "m.pt"], out, sheets=[None, False])
+    assert [(r["meshed"], r["sheets"]) for r in rows] == [(2, None), (1, False)] and rows[1]["lost"] == ["b"]

@@ -99,6 +99,35 @@ def test_cluster_planes_separates_and_merges():
     np.testing.assert_allclose(planes, [0.0, 0.05], atol=1.5e-3)
 
 
+def test_cluster_planes_keeps_two_close_faces_that_face_opposite_ways():
+    """Two planes closer than the merge distance: one plane when their points face one way (a thick face),
+    two when they face opposite ways (the faces of a thin plate), unless closer than ``sheet``."""
+    rng = np.random.default_rng(1)
+    c = np.concatenate([rng.normal(0.0, 0.0005, 200), rng.normal(0.005, 0.0005, 200)])
+    up = np.r_[np.full(200, -1), np.full(200, 1)]
+    assert len(cluster_planes(c, bandwidth=0.003, min_points=5, merge=0.006)) == 1
+    assert len(cluster_planes(c, 0.003, 5, 0.006, signs=np.ones(400), sheet=0.003)) == 1
+    got = cluster_planes(c, 0.003, 5, 0.006, signs=up, sheet=0.003)
+    np.testing.assert_allclose(got, [0.0, 0.005], atol=3e-4)  # each face placed by its own points
+    assert len(cluster_planes(c, 0.003, 5, 0.006, signs=up, sheet=0.006)) == 1
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_extract_keeps_a_plate_thinner_than_the_merge_distance(seed):
+    """A block with a fin 0.6 point spacings thick (2048 points): the fin's two faces are closer than the
+    merge distance, so merged into one plane they leave a sheet of no thickness and the cloud is far from
+    the polycube; kept apart because they face opposite ways, the fin is recovered."""
+    occ = np.zeros((2, 1, 3), bool)
+    occ[0, 0, :] = True
+    occ[1, 0, 1] = True
+    truth = Polycube(np.array([-0.4, 0.0, 0.4]), np.array([-0.3, 0.3]), np.array([-0.2, -0.007, 0.007, 0.2]), occ)
+    P, N = _cloud(truth, 2048, 0.0, 0.0, seed=seed)
+    with pytest.raises(PolycubeError, match="cloud is far from the extracted polycube"):
+        extract(P, N, genus=0, config=ExtractConfig(sheet_bandwidths=None))
+    got = extract(P, N, genus=0)
+    assert _same_solid(got, truth, atol=2e-3)
+
+
 def test_partition_is_conforming_and_fills_the_polycube():
     poly = _genus2()
     m = partition(poly, target_hexes=3000)
