@@ -322,6 +322,8 @@ def cluster_planes(coords: np.ndarray, bandwidth: float, min_points: int, merge:
         a slit thinner than ``merge``, which one plane would turn into a sheet of no thickness
     """
     coords = np.asarray(coords, dtype=np.float64)
+    if sheet is None:
+        signs = None  # without a sheet distance the signs change nothing
     if signs is not None:
         order = np.argsort(coords)
         coords, signs = coords[order], np.asarray(signs)[order] > 0
@@ -344,7 +346,7 @@ def cluster_planes(coords: np.ndarray, bandwidth: float, min_points: int, merge:
             continue
         same = np.ones(len(coords), bool)
         up = 0.5
-        if signs is not None and sheet is not None:
+        if signs is not None:
             # the way the peak's own points face (within half a bandwidth); a peak that faces one way is
             # placed by the points that face that way only, so that a close opposite face does not pull it
             core = np.abs(coords - p) <= 0.5 * bandwidth
@@ -368,7 +370,7 @@ def cluster_planes(coords: np.ndarray, bandwidth: float, min_points: int, merge:
     merged_p, merged_w, merged_u = [planes[0]], [weights[0]], [ups[0]]
     for p, w, u in zip(planes[1:], weights[1:], ups[1:]):
         apart = p - merged_p[-1]
-        two_faces = (signs is not None and sheet is not None and apart >= sheet
+        two_faces = (signs is not None and apart >= sheet
                      and _facing(merged_u[-1]) * _facing(u) < 0)
         if apart < merge and not two_faces:
             tw = merged_w[-1] + w

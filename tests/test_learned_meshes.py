@@ -14,6 +14,21 @@ def _row(ok, seconds):
     return [ok, 0.3 if ok else None, 1 if ok else None, seconds, 0.005, None, "registration"]
 
 
+def _fake_jobs(monkeypatch, module, outcome, field: str) -> list:
+    """Replace ``module._job`` by ``outcome(job as a dict) -> row``; returns the (arm, part, job[field]) it saw."""
+    seen = []
+    keys = ("arm", "checkpoint", "path", "steps", "draws", "mend_moves", "own", "sheets")
+
+    def fake_job(job):
+        d = dict(zip(keys, job, strict=True))
+        d["name"] = Path(d["path"]).stem
+        seen.append((d["arm"], d["name"], d[field]))
+        return d["arm"], d["name"], outcome(d)
+
+    monkeypatch.setattr(module, "_job", fake_job)
+    return seen
+
+
 def test_summary_counts_gains_and_losses_against_the_first_checkpoint():
     # one arm per entry: the same checkpoint may come twice (with two tables of draws)
     result = [
@@ -68,18 +83,13 @@ def test_misses_only_runs_the_later_arms_on_the_first_arms_misses(monkeypatch):
 def test_the_own_structure_arm_is_passed_on_and_its_meshes_on_the_part_s_structure_are_counted(monkeypatch):
     import learned_meshes
 
-    seen = []
-
-    def fake_job(job):
-        arm, ck, path, steps, draws, mend_moves, own, sheets = job
-        name = Path(path).stem
-        seen.append((arm, name, own))
-        row = _row(name == "a" or (own and name == "b"), 1.0)
-        if own and name == "b":
+    def outcome(job):
+        row = _row(job["name"] == "a" or (job["own"] and job["name"] == "b"), 1.0)
+        if job["own"] and job["name"] == "b":
             row[6] = "exact, part's structure"
-        return arm, name, row
+        return row
 
-    monkeypatch.setattr(learned_meshes, "_job", fake_job)
+    seen = _fake_jobs(monkeypatch, learned_meshes, outcome, "own")
     parts = [Path(f"/x/{n}.step") for n in "ab"]
     out = learned_meshes.compare(["m.pt", "m.pt"], parts, misses_only=True, owns=[False, True])
     assert sorted(seen) == [(0, "a", False), (0, "b", False), (1, "b", True)]
@@ -91,15 +101,9 @@ def test_the_own_structure_arm_is_passed_on_and_its_meshes_on_the_part_s_structu
 def test_the_sheets_arm_reaches_each_job_and_the_summary(monkeypatch):
     import learned_meshes
 
-    seen = []
-
-    def fake_job(job):
-        arm, ck, path, steps, draws, mend_moves, own, sheets = job
-        name = Path(path).stem
-        seen.append((arm, name, sheets))
-        return arm, name, _row(name == "a" or (sheets is not False and name == "b"), 1.0)
-
-    monkeypatch.setattr(learned_meshes, "_job", fake_job)
+    seen = _fake_jobs(monkeypatch, learned_meshes,
+                      lambda job: _row(job["name"] == "a" or (job["sheets"] is not False and job["name"] == "b"), 1.0),
+                      "sheets")
     parts = [Path(f"/x/{n}.step") for n in "ab"]
     out = learned_meshes.compare(["m.pt", "m.pt"], parts, sheets=[None, False])
     assert sorted(seen) == [(0, "a", None), (0, "b", None), (1, "a", False), (1, "b", False)]
