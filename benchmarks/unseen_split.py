@@ -1,0 +1,103 @@
+"""Never-seen parts meshed through the learned source, split by the features that lose them, over many runs.
+
+    python benchmarks/unseen_split.py RESULT.json [RESULT.json ...] [--arm NAME] [--json benchmarks/results/unseen_split.json]
+
+Reads the JSON files ``benchmarks/learned_meshes.py`` writes (one arm each: ``--arm``, or the file's first, its
+baseline), rebuilds every set's parts (``family:seed``, the file's ``count``; :func:`unseen_parts.make_parts`
+draws them from their seed, so they are the parts that were meshed) only to read their descriptions and their
+sharpest convex edge, and counts the parts meshed (valid, within the Hausdorff and quality bars, learned
+provenance: what ``learned_meshes.py`` counts) in each class of ``unseen_losses.py``: by shape (no slanted end,
+a slanted end, a slanted end and a round through-hole: :func:`unseen_losses.shape_class`) and by the sharpest
+convex edge (:data:`unseen_losses.EDGE_BINS`).  No model is run.  Prints one table per split, each row with
+the count per file and over all of them; writes the JSON.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from unseen_losses import EDGE_BINS, SHAPES, edge_class, shape_class  # noqa: E402
+from unseen_parts import knife_edge_deg, make_parts  # noqa: E402
+
+
+def read_arm(path: Path, arm: str | None) -> tuple[str, dict[str, bool], list[str], int]:
+    """``(arm name, {part: meshed}, sets, count)`` of one ``learned_meshes.py`` JSON."""
+    d = json.loads(path.read_text())
+    names = [s["name"] for s in d["summary"]]
+    name = names[0] if arm is None else arm
+    if name not in d["rows"]:
+        raise SystemExit(f"{path}: no arm {name!r} (arms: {', '.join(names)})")
+    return name, {part: bool(row[0]) for part, row in d["rows"][name].items()}, list(d["sets"]), int(d["count"])
+
+
+def describe(sets: list[str], count: int, tmp: Path) -> dict[str, tuple[str, float]]:
+    """``{part: (description, sharpest convex edge in degrees)}`` of the never-seen sets, rebuilt from their seeds."""
+    out = {}
+    for spec in sets:
+        family, seed = spec.split(":")
+        folder = tmp / spec.replace(":", "_")
+        folder.mkdir(parents=True, exist_ok=True)
+        for p, desc in make_parts(folder, count, int(seed), family):
+            out[p.stem] = (desc, knife_edge_deg(p))
+            p.unlink()
+    return out
+
+
+def split(meshed: dict[str, bool], info: dict[str, tuple[str, float]]) -> dict[str, dict[str, list[int]]]:
+    """``{"shape": {class: [meshed, parts]}, "edge": {bin: [meshed, parts]}}``; a part whose build is not found
+    again (an OpenCASCADE build that differs between machines) is counted under ``unknown``."""
+    out: dict[str, dict[str, list[int]]] = {"shape": {}, "edge": {}}
+    for part, ok in meshed.items():
+        desc, deg = info.get(part, (None, None))
+        for key, cls in (("shape", shape_class(desc)), ("edge", edge_class(deg))):
+            cell = out[key].setdefault(cls or "unknown", [0, 0])
+            cell[0] += int(ok)
+            cell[1] += 1
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("results", nargs="+", type=Path, help="learned_meshes.py JSON files")
+    ap.add_argument("--arm", default=None, help="the arm to read in every file (default: each file's first)")
+    ap.add_argument("--json", type=Path, default=ROOT / "benchmarks/results/unseen_split.json")
+    args = ap.parse_args(argv)
+
+    per_file = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for f in args.results:
+            arm, meshed, sets, count = read_arm(f, args.arm)
+            info = describe(sets, count, Path(tmp) / f.stem)
+            per_file[f.stem] = {"arm": arm, "sets": sets, "meshed": sum(meshed.values()), "parts": len(meshed),
+                                "split": split(meshed, info),
+                                "parts_missed": {p: info.get(p, (None, None))[0] for p, ok in meshed.items() if not ok}}
+            print(f"{f.stem}: {per_file[f.stem]['meshed']} / {len(meshed)} (arm {arm})", flush=True)
+    total = {"shape": {}, "edge": {}}
+    for r in per_file.values():
+        for key in total:
+            for cls, (m, k) in r["split"][key].items():
+                cell = total[key].setdefault(cls, [0, 0])
+                cell[0] += m
+                cell[1] += k
+    for key, order in (("shape", SHAPES), ("edge", EDGE_BINS)):
+        classes = [c for c in (*order, "unknown") if c in total[key]]
+        print(f"\n{'by ' + key:<44}" + "".join(f"{c[:22]:>24}" for c in classes))
+        for name, r in per_file.items():
+            print(f"{name:<44}" + "".join(f"{'%d / %d' % tuple(r['split'][key].get(c, [0, 0])):>24}" for c in classes))
+        print(f"{'all':<44}" + "".join(f"{'%d / %d' % tuple(total[key][c]):>24}" for c in classes))
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps({"files": [str(f) for f in args.results], "arm": args.arm, "per_file": per_file,
+                                     "all": total}, indent=1))
+    print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
