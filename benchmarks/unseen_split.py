@@ -50,10 +50,12 @@ def describe(sets: list[str], count: int, tmp: Path) -> dict[str, tuple[str, flo
     return out
 
 
-def split(meshed: dict[str, bool], info: dict[str, tuple[str, float]]) -> dict[str, dict[str, list[int]]]:
-    """``{"shape": {class: [meshed, parts]}, "edge": {bin: [meshed, parts]}}``; a part whose build is not found
-    again (an OpenCASCADE build that differs between machines) is counted under ``unknown``."""
-    out: dict[str, dict[str, list[int]]] = {"shape": {}, "edge": {}}
+def split(meshed: dict[str, bool], info: dict[str, tuple[str, float]],
+          out: dict[str, dict[str, list[int]]] | None = None) -> dict[str, dict[str, list[int]]]:
+    """``{"shape": {class: [meshed, parts]}, "edge": {bin: [meshed, parts]}}``, added to ``out`` when given; a part
+    whose build is not found again (an OpenCASCADE build that differs between machines) is counted under
+    ``unknown``."""
+    out = {"shape": {}, "edge": {}} if out is None else out
     for part, ok in meshed.items():
         desc, deg = info.get(part, (None, None))
         for key, cls in (("shape", shape_class(desc)), ("edge", edge_class(deg))):
@@ -70,7 +72,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, default=ROOT / "benchmarks/results/unseen_split.json")
     args = ap.parse_args(argv)
 
-    per_file = {}
+    per_file, total = {}, {"shape": {}, "edge": {}}
     with tempfile.TemporaryDirectory() as tmp:
         for f in args.results:
             arm, meshed, sets, count = read_arm(f, args.arm)
@@ -78,14 +80,8 @@ def main(argv=None) -> int:
             per_file[f.stem] = {"arm": arm, "sets": sets, "meshed": sum(meshed.values()), "parts": len(meshed),
                                 "split": split(meshed, info),
                                 "parts_missed": {p: info.get(p, (None, None))[0] for p, ok in meshed.items() if not ok}}
+            split(meshed, info, total)
             print(f"{f.stem}: {per_file[f.stem]['meshed']} / {len(meshed)} (arm {arm})", flush=True)
-    total = {"shape": {}, "edge": {}}
-    for r in per_file.values():
-        for key in total:
-            for cls, (m, k) in r["split"][key].items():
-                cell = total[key].setdefault(cls, [0, 0])
-                cell[0] += m
-                cell[1] += k
     for key, order in (("shape", SHAPES), ("edge", EDGE_BINS)):
         classes = [c for c in (*order, "unknown") if c in total[key]]
         print(f"\n{'by ' + key:<44}" + "".join(f"{c[:22]:>24}" for c in classes))
