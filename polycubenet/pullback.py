@@ -80,7 +80,7 @@ from scipy.spatial import cKDTree
 from . import tol
 from .data import HexMesh
 from .hexmesh import HEX_EDGES, boundary_quads, boundary_vertex_mask, quads_to_triangles
-from .quality import CORNER_FRAMES, scaled_jacobian_and_degenerate  # verdict's corner order
+from .quality import CORNER_FRAMES, corner_sj_and_degenerate, scaled_jacobian_and_degenerate  # verdict's corner order
 
 #: polycube patch labels: label ``2 * axis + (sign > 0)``
 LABELS = ("-x", "+x", "-y", "+y", "-z", "+z")
@@ -1217,13 +1217,26 @@ def _quad_gap(surf: PartSurface, Y: np.ndarray, quads: np.ndarray) -> float:
 
 def _guarded_move(X, hexes, inc, group, v, fractions, sj_bar, also) -> bool:
     """Move nodes ``group`` of ``X`` (in place) by the largest of ``fractions`` of ``v`` that leaves no hex around
-    them below ``min(sj_bar, its SJ before)`` and passes ``also()``; True if one did (else ``X`` is unchanged)."""
-    rows = np.unique(np.concatenate([inc[:, m].indices for m in group]))
-    before = _hex_sj(hexes, X, rows)
+    them below ``min(sj_bar, its SJ before)`` and passes ``also()``; True if one did (else ``X`` is unchanged).
+    ``inc``: the node -> hex incidence as CSC (P x H).  The hexes' SJ at every fraction is taken in one pass (these
+    moves are tried tens of thousands of times on a hard part); ``also()`` only where the SJ guard passes, in order."""
+    rows = np.unique(np.concatenate([inc.indices[inc.indptr[m]:inc.indptr[m + 1]] for m in group]))
+    H = hexes[rows]  # (r, 8) node ids
+    fr = np.asarray(fractions, dtype=np.float64)
+    # the hexes' corners as they are, then at each fraction: only the group's nodes move
+    corners = np.broadcast_to(X[H], (1 + len(fr),) + H.shape + (3,)).copy()  # (1 + f, r, 8, 3)
+    for m in group:
+        hit = H == m
+        corners[1:, hit] = (X[m] + fr[:, None] * v)[:, None, :]
+    sj, dg = corner_sj_and_degenerate(corners.reshape(-1, 8, 3))
+    sj = np.where(dg, -np.inf, sj).reshape(1 + len(fr), len(rows))
+    ok = (sj[1:] >= np.minimum(sj[0], sj_bar) - 1e-9).all(axis=1)
     start = X[group].copy()
-    for frac in fractions:
+    for frac, good in zip(fr, ok):
+        if not good:
+            continue
         X[group] = start + frac * v
-        if (_hex_sj(hexes, X, rows) >= np.minimum(before, sj_bar) - 1e-9).all() and also():
+        if also():
             return True
     X[group] = start
     return False
@@ -1281,7 +1294,7 @@ def guarded_corner_snap(
             continue
         used.add(n)
         group = [n] + ([int(follow[n])] if follow is not None and follow[n] >= 0 else [])
-        qrows = node_quads[n].indices
+        qrows = node_quads.indices[node_quads.indptr[n]:node_quads.indptr[n + 1]]
         gap_bar = max(quad_gap(X, qrows), 0.5 * tol.HAUSDORFF_REL_MAX)
         if _guarded_move(X, hexes, inc, group, C[ci] - X[n], fractions, sj_bar,
                          lambda: quad_gap(X, qrows) <= gap_bar):
@@ -1367,7 +1380,7 @@ def guarded_spot_capture(
                 if n in used or dn > radius * h[n]:
                     continue
                 tried += 1
-                qrows = node_quads[n].indices
+                qrows = node_quads.indices[node_quads.indptr[n]:node_quads.indptr[n + 1]]
                 gap_bar = max(quad_gap(X, qrows), 0.5 * tol.HAUSDORFF_REL_MAX)
                 def passes(qrows=qrows, gap_bar=gap_bar):
                     return quad_gap(X, qrows) <= gap_bar

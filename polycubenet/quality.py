@@ -113,6 +113,12 @@ def _sj_chunk(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return sj, degenerate
 
 
+def corner_sj_and_degenerate(corners) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`scaled_jacobian_and_degenerate` of hexes given by their corner coordinates ``(h, 8, 3)`` (VTK
+    order), e.g. the same few hexes at several trial positions of a node."""
+    return _sj_chunk(np.asarray(corners, dtype=np.float64))
+
+
 def scaled_jacobian_and_degenerate(points, hexes) -> tuple[np.ndarray, np.ndarray]:
     """Scaled Jacobian and degenerate flag of each hex in one pass.
 

@@ -601,3 +601,49 @@ def test_the_pipeline_eases_at_its_own_quality_bar():
     out = ease_poor_hexes(poor, V, F, strict)
     assert out is not poor and out.meta["eased"]["kept"] and out.meta["sj_min"] > sj.min()
     assert scaled_jacobian(out.points, out.hexes).min() == pytest.approx(out.meta["sj_min"], abs=1e-6)
+
+
+def test_a_guarded_move_takes_the_largest_fraction_that_keeps_every_hex_and_the_extra_guard():
+    """_guarded_move tries all fractions of a move in one SJ pass: on random moves of one node or of a node and a
+    partner in a jittered box mesh it keeps exactly what trying the fractions one by one keeps (the largest that
+    leaves no hex around the nodes below min(bar, its SJ before) and passes the extra guard), or leaves X as it was."""
+    import scipy.sparse as sp
+
+    from polycubenet.pullback import _guarded_move, _hex_incidence
+    from polycubenet.quality import scaled_jacobian_and_degenerate
+
+    m = structured_box(3)
+    P = len(m.points)
+    inc = sp.csc_matrix(_hex_incidence(m.hexes, P)[0])
+    fractions = (1.0, 0.75, 0.5, 0.25)
+
+    def one_by_one(X, group, v, bar, also):
+        rows = np.flatnonzero(np.isin(m.hexes, group).any(axis=1))
+        def sj():
+            s, dg = scaled_jacobian_and_degenerate(X, m.hexes[rows])
+            return np.where(dg, -np.inf, s)
+        floor = np.minimum(sj(), bar) - 1e-9
+        start = X[group].copy()
+        for f in fractions:
+            X[group] = start + f * v
+            if (sj() >= floor).all() and also(X):
+                return f
+        X[group] = start
+        return None
+
+    rng = np.random.default_rng(3)
+    kept = {f: 0 for f in fractions + (None,)}
+    for _ in range(400):
+        X0 = m.points + rng.normal(0.0, 0.08, m.points.shape)
+        group = [int(rng.integers(P))] + ([int(rng.integers(P))] if rng.random() < 0.3 else [])
+        v = rng.normal(0.0, rng.choice([0.1, 0.4, 0.8]), 3)
+        bar = float(rng.choice([0.2, 0.6, 0.95]))
+        limit = X0[group[0], 0] + rng.choice([0.02, np.inf])  # the extra guard: the node may not go far in +x
+        ref = X0.copy()
+        f = one_by_one(ref, group, v, bar, lambda Y: Y[group[0], 0] <= limit)
+        got = X0.copy()
+        moved = _guarded_move(got, m.hexes, inc, group, v, fractions, bar, lambda: got[group[0], 0] <= limit)
+        assert moved == (f is not None)
+        assert np.array_equal(got, ref)
+        kept[f] += 1
+    assert kept[None] > 0 and kept[1.0] > 0 and sum(kept[f] for f in (0.75, 0.5, 0.25)) > 0  # every branch seen
