@@ -26,6 +26,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from unseen_losses import EDGE_BINS, SHAPES, edge_class, shape_class  # noqa: E402
 from unseen_parts import knife_edge_deg, make_parts  # noqa: E402
 
+from polycubenet.atomic import write_json  # noqa: E402
+
 
 def read_arm(path: Path, arm: str | None) -> tuple[str, dict[str, bool], list[str], int]:
     """``(arm name, {part: meshed}, sets, count)`` of one ``learned_meshes.py`` JSON."""
@@ -88,9 +90,7 @@ def main(argv=None) -> int:
         for name, r in per_file.items():
             print(f"{name:<44}" + "".join(f"{'%d / %d' % tuple(r['split'][key].get(c, [0, 0])):>24}" for c in classes))
         print(f"{'all':<44}" + "".join(f"{'%d / %d' % tuple(total[key][c]):>24}" for c in classes))
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps({"files": [str(f) for f in args.results], "arm": args.arm, "per_file": per_file,
-                                     "all": total}, indent=1))
+    write_json(args.json, {"files": [str(f) for f in args.results], "arm": args.arm, "per_file": per_file, "all": total})
     print(f"wrote {args.json}")
     return 0
 
