@@ -598,8 +598,8 @@ def test_learned_batches_then_classical_fallback(prefect_harness, part_lib, tiny
     good, wrong = rows[f"synth-{GOOD[0]}"], rows["wrong_genus"]
     assert good["status"] == "meshed" and good["provenance"] == "classical"
     # the first draw (2 steps) was rejected, then the model's second draw at 4 steps, its third at the first's
-    # steps with the next seed and its fourth at the first's steps and seed, anchors evenly spread (the policy),
-    # then classical
+    # steps with the next seed, its fourth at the first's steps and seed, anchors evenly spread, its fifth and
+    # sixth evenly spread at the next seed, at the first's steps and at 4 (the policy), then classical
     assert good["fallback"].startswith("learned polycube rejected")
     assert "learned (draw 2, 4 steps) polycube rejected" in good["fallback"]
     assert "learned (draw 3, 1 step, seed +1) polycube rejected" in good["fallback"]
@@ -609,8 +609,8 @@ def test_learned_batches_then_classical_fallback(prefect_harness, part_lib, tiny
     work = out / ".work"
     learned = [library.PolycubeCloud.load(p) for p in work.rglob("polycube-*.npz")
                if library.PolycubeCloud.load(p).meta.get("provenance") == "learned"]
-    assert len(learned) == 8 and all(c.points.shape == (SMALL["n_learned"], 3) for c in learned)
-    assert sorted(int(c.meta["steps"]) for c in learned) == [2, 2, 2, 2, 2, 2, 4, 4]
+    assert len(learned) == 12 and all(c.points.shape == (SMALL["n_learned"], 3) for c in learned)
+    assert sorted(int(c.meta["steps"]) for c in learned) == [2] * 8 + [4] * 4
 
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
@@ -620,15 +620,15 @@ def test_learned_batches_then_classical_fallback(prefect_harness, part_lib, tiny
     assert sum(tr.name.startswith("generate-") for tr in runs) == 2  # the second draws are per part
 
     # the DDIM steps are in the learned polycube's key: other steps generate anew, the same steps reuse
-    # (the second draw's 4 steps whatever the first's, the third's and fourth's at the first's steps); a first
-    # draw at 4 steps has no second, its third and fourth are at 4 steps
+    # (the second and sixth draws' 4 steps whatever the first's, the third's to fifth's at the first's steps); a
+    # first draw at 4 steps has no second and no sixth (the fifth's cloud), its third to fifth are at 4 steps
     def learned_files():
         return {p.name for p in work.rglob("polycube-*.npz")
                 if library.PolycubeCloud.load(p).meta.get("provenance") == "learned"}
 
     first = learned_files()
     parts = [part_lib / f"synth-{GOOD[0]}.stl", part_lib / "wrong_genus.obj"]
-    for steps, expected in ((3, 14), (2, 14), (4, 20)):
+    for steps, expected in ((3, 20), (2, 20), (4, 28)):
         state, res = _mesh(parts, out, polycube="auto", checkpoint=str(tiny_checkpoint), steps=steps,
                            point_budget=budget)
         assert state.is_completed() and len(learned_files()) == expected

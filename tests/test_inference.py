@@ -242,11 +242,14 @@ def test_model_source_further_draws_and_their_place_in_the_chain(ckpt, anchored_
     from polycubenet import policy
     from polycubenet.pipeline import source_chain
 
-    assert ModelSource(anchored_ckpt, steps=1, device="cpu").further_draws() == (1, 2, 3)  # the shipped table
-    assert ModelSource(anchored_ckpt, steps=4, device="cpu").further_draws() == (2, 3)
+    assert ModelSource(anchored_ckpt, steps=1, device="cpu").further_draws() == (1, 2, 3, 4, 5)  # the shipped table
+    assert ModelSource(anchored_ckpt, steps=4, device="cpu").further_draws() == (2, 3, 4)
     assert ModelSource(anchored_ckpt, steps=1, device="cpu").draw_source(3).anchors == "even"
-    # a model without anchors: the evenly spread draw would repeat the first, so it is skipped
-    assert ModelSource(ckpt, steps=1, device="cpu").further_draws() == (1, 2)
+    d5 = ModelSource(anchored_ckpt, steps=1, seed=2, device="cpu").draw_source(5)
+    assert (d5.steps, d5.seed, d5.anchors) == (4, 3, "even")
+    # a model without anchors: an evenly spread draw is an earlier one again (the first; the one-step draw at
+    # seed +1), so it is skipped
+    assert ModelSource(ckpt, steps=1, device="cpu").further_draws() == (1, 2, 5)
     assert ModelSource(ckpt, steps=4, device="cpu").further_draws() == (2,)
     LEARNED_DRAWS = ((4, 0, False), (4, 1, False), (4, 2, False))
     monkeypatch.setattr(policy, "LEARNED_DRAWS", LEARNED_DRAWS)

@@ -47,8 +47,9 @@ def test_draw_tables_parse_like_the_policys():
     from polycubenet.policy import LEARNED_DRAWS
 
     assert parse_draws("default") is None
-    assert parse_draws("4/0/n/-,1/1/y/-,1/0/y/-/even") == LEARNED_DRAWS == (
-        (4, 0, False, None), (1, 1, True, None), (1, 0, True, None, "even"))
+    assert parse_draws("4/0/n/-,1/1/y/-,1/0/y/-/even,1/1/y/-/even,4/1/y/-/even") == LEARNED_DRAWS == (
+        (4, 0, False, None), (1, 1, True, None), (1, 0, True, None, "even"), (1, 1, True, None, "even"),
+        (4, 1, True, None, "even"))
     assert parse_draws("1/1/y/z") == ((1, 1, True, "z"),) and parse_draws("1/1/y/z/uniform") == ((1, 1, True, "z", "uniform"),)
     for bad in ("4/0/n", "4/0/maybe/-", "4/0/n/w", "4/0/n/-/1", "4/0/n/-/even/x"):
         with pytest.raises(ValueError):

@@ -78,16 +78,25 @@ def test_the_last_source_partitions_the_finest_voxel_polycube_denser():
 
 def test_the_models_further_draws_follow_the_first(monkeypatch):
     # the shipped table: a 4-step draw after a cheaper first, then a one-step draw at another seed, then one as
-    # the first but with evenly spread anchors; after a first draw at 4 steps the 4-step draw at seed +0 would
-    # repeat the first (at 4 steps: never fewer than the first)
-    assert LEARNED_DRAWS == ((4, 0, False, None), (1, 1, True, None), (1, 0, True, None, "even"))
-    assert learned_draws(1) == (1, 2, 3) and learned_draws(4) == (2, 3) == learned_draws(8)
-    # for a model that takes no anchors the evenly spread draw is the first again
-    assert learned_draws(1, anchored=False) == (1, 2) and learned_draws(4, anchored=False) == (2,)
-    assert [draw_fallbacks(s) for s in ("learned", "learned+1", "learned+2", "learned+3")] == [True, False, True, True]
+    # the first but with evenly spread anchors, then evenly spread ones at seed +1 at 1 and 4 steps; after a first
+    # draw at 4 steps the 4-step draw at seed +0 would repeat the first (at 4 steps: never fewer than the first),
+    # and the two even draws at seed +1 are one draw
+    assert LEARNED_DRAWS == ((4, 0, False, None), (1, 1, True, None), (1, 0, True, None, "even"),
+                             (1, 1, True, None, "even"), (4, 1, True, None, "even"))
+    assert learned_draws(1) == (1, 2, 3, 4, 5) and learned_draws(4) == (2, 3, 4) == learned_draws(8)
+    # for a model that takes no anchors the evenly spread draws are the first and the one-step seed +1 again
+    assert learned_draws(1, anchored=False) == (1, 2, 5) and learned_draws(4, anchored=False) == (2,)
+    assert [draw_fallbacks(f"learned+{k}") for k in range(6)] == [True, False, True, True, True, True]
     assert source_label("learned+2") == "learned (draw 3, 1 step, seed +1)"
     assert source_label("learned+3") == "learned (draw 4, 1 step, even anchors)"
-    assert [draw_anchors(f"learned+{k}") for k in (1, 2, 3)] == ["uniform", "uniform", "even"]
+    assert source_label("learned+4") == "learned (draw 5, 1 step, seed +1, even anchors)"
+    assert source_label("learned+5") == "learned (draw 6, 4 steps, seed +1, even anchors)"
+    assert [draw_anchors(f"learned+{k}") for k in (1, 2, 3, 4, 5)] == ["uniform", "uniform", "even", "even", "even"]
+    # a later draw of an earlier one's cloud is tried only when it adds the generator fallbacks the earlier lacked
+    monkeypatch.setattr(policy, "LEARNED_DRAWS", ((4, 0, False), (4, 0, True), (4, 0, False), (4, 0, True)))
+    assert learned_draws(1) == (1, 2) and learned_draws(4) == ()
+    monkeypatch.setattr(policy, "LEARNED_DRAWS", ((4, 0, True), (4, 0, False), (1, 2, False), (4, 2, True)))
+    assert learned_draws(1) == (1, 3, 4) and learned_draws(4) == (3, 4) and learned_draws(2) == (1, 3, 4)
     # a draw of the part turned (measured in session 36, not in the table): named so, and at the first's steps
     # and seed it is not a repeat of the first
     monkeypatch.setattr(policy, "LEARNED_DRAWS", ((1, 0, True, "x"), (1, 0, True, None), (1, 1, True, "z")))
