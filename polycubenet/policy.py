@@ -103,7 +103,7 @@ VOXEL_REFINEMENTS = 3
 #: 4/1/y/-/even --misses-only``): the 40 misses of the session 66-73 fresh sets 8 against 2 (+6: three by each
 #: of the two; ``benchmarks/results/s74_even2_old_misses.json``), then the sets never run before, 981-984 20 of
 #: 24 either way and 991-994 22 of 24 against 21 (+1; ``s74_fresh_981_984.json``, ``s75_fresh_991_994.json``);
-#: the examples all mesh at the first draw, so they never run; a part the earlier draws leave costs about 150 s
+#: the examples all mesh by the first four draws, so these never run; a part the earlier draws leave costs about 150 s
 #: more of learned source (the draws' maps and rests) before the classical chain: kept
 LEARNED_DRAWS = ((4, 0, False, None), (1, 1, True, None), (1, 0, True, None, "even"),
                  (1, 1, True, None, "even"), (4, 1, True, None, "even"))
