@@ -176,7 +176,7 @@ def learned_draws(steps, anchored: bool = True) -> tuple[int, ...]:
         cloud = (draw_steps(src, steps), draw_seed(src), draw_turn(src), draw_anchors(src) if anchored else "uniform")
         if cloud in tried and (tried[cloud] or not draw_fallbacks(src)):
             continue
-        tried[cloud] = tried.get(cloud, False) or draw_fallbacks(src)
+        tried[cloud] = draw_fallbacks(src)  # here: a new cloud, or one now with the fallbacks
         kept.append(k)
     return tuple(kept)
 
