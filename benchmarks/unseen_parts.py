@@ -383,9 +383,11 @@ def meets_bars(r, cfg) -> bool:
 
 def parse_draws(text: str) -> tuple | None:
     """A ``--draws`` table of the model's further draws: None for ``default`` (the policy's
-    ``LEARNED_DRAWS``), else ``LEARNED_DRAWS``-shaped tuples from entries ``STEPS/SEED/FALLBACKS/TURN[/ANCHORS]``
-    joined by commas (FALLBACKS ``y``/``n``; TURN ``x``, ``y``, ``z`` or ``-`` for none; ANCHORS ``uniform``
-    (the default) or ``even``, :data:`polycubenet.inference.ANCHOR_SPREADS`)."""
+    ``LEARNED_DRAWS``), else ``LEARNED_DRAWS``-shaped tuples from entries
+    ``STEPS/SEED/FALLBACKS/TURN[/ANCHORS[/STRETCH]]`` joined by commas (FALLBACKS ``y``/``n``; TURN ``x``, ``y``,
+    ``z`` or ``-`` for none; ANCHORS ``uniform`` (the default) or ``even``,
+    :data:`polycubenet.inference.ANCHOR_SPREADS`; STRETCH the exponent of
+    :func:`polycubenet.inference.stretch_factors`)."""
     from polycubenet.inference import ANCHOR_SPREADS
 
     if text == "default":
@@ -393,11 +395,11 @@ def parse_draws(text: str) -> tuple | None:
     table = []
     for entry in text.split(","):
         fields = entry.split("/")
-        if (len(fields) not in (4, 5) or fields[2] not in ("y", "n") or fields[3] not in ("x", "y", "z", "-")
-                or (len(fields) == 5 and fields[4] not in ANCHOR_SPREADS)):
-            raise ValueError(f"bad --draws entry {entry!r}: expected STEPS/SEED/y|n/x|y|z|-[/uniform|even]")
+        if (len(fields) not in (4, 5, 6) or fields[2] not in ("y", "n") or fields[3] not in ("x", "y", "z", "-")
+                or (len(fields) >= 5 and fields[4] not in ANCHOR_SPREADS)):
+            raise ValueError(f"bad --draws entry {entry!r}: expected STEPS/SEED/y|n/x|y|z|-[/uniform|even[/STRETCH]]")
         row = (int(fields[0]), int(fields[1]), fields[2] == "y", None if fields[3] == "-" else fields[3])
-        table.append(row + ((fields[4],) if len(fields) == 5 else ()))
+        table.append(row + tuple(fields[4:5]) + tuple(float(f) for f in fields[5:6]))
     return tuple(table)
 
 

@@ -40,6 +40,30 @@ MAX_CHUNK = 8192
 #: the frame's sign convention, and the cloud is turned back exactly
 TURNS = {"x": np.diag([1.0, -1.0, -1.0]), "y": np.diag([-1.0, 1.0, -1.0]), "z": np.diag([-1.0, -1.0, 1.0])}
 
+
+def stretch_factors(V: np.ndarray, exponent: float) -> np.ndarray:
+    """The per-axis factors of a further draw's stretched view of a part in the canonical frame
+    (:attr:`ModelSource.stretch`): axis ``i`` scaled by ``(e_max / e_i) ** exponent`` of the bounding-box
+    extents ``e``, then all by one factor that gives the stretched box the unit diagonal again.  An exponent in
+    (0, 1) takes the box part of the way to a cube, a negative one away from it; either keeps the extents' order,
+    so the stretched part is in a canonical frame too, and an axis-aligned scaling maps a polycube to a polycube,
+    so the cloud is stretched back exactly."""
+    V = np.asarray(V, np.float64)
+    e = np.maximum(V.max(axis=0) - V.min(axis=0), 1e-9)
+    d = (e.max() / e) ** float(exponent)
+    return d / np.linalg.norm(e * d) * np.linalg.norm(e)
+
+
+def view_points(points: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Points seen through the diagonal map ``diag(d)`` (a turn's signs, a stretch's factors)."""
+    return np.asarray(points, np.float64) * d
+
+
+def view_normals(normals: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Unit normals seen through ``diag(d)``: the inverse transpose, renormalised."""
+    n = np.asarray(normals, np.float64) / d
+    return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+
 _CACHE: dict = {}
 
 
@@ -278,17 +302,22 @@ class ModelSource:
     part's sample and returns a :class:`PolycubeCloud` with ``meta["provenance"] == "learned"``.
     With ``turn`` (a key of :data:`TURNS`) the model sees the part (samples and anchors) turned a
     half-turn about that axis, and the generated cloud is turned back: another view of the same part.
-    ``anchors`` spreads the model's anchors on the part (:data:`ANCHOR_SPREADS`).
+    With ``stretch`` (an exponent, :func:`stretch_factors`; 0 or None: none) it sees the part scaled along the
+    axes, and the cloud is scaled back.  ``anchors`` spreads the model's anchors on the part
+    (:data:`ANCHOR_SPREADS`).
     """
 
     def __init__(self, model: str | Path | Loaded | None = None, steps: int | None = None, seed: int = 0,
-                 device: str | None = None, turn: str | None = None, anchors: str = "uniform"):
+                 device: str | None = None, turn: str | None = None, anchors: str = "uniform",
+                 stretch: float | None = None):
         if turn is not None and turn not in TURNS:
             raise ValueError(f"unknown turn {turn!r}; expected one of {sorted(TURNS)} or None")
         if anchors not in ANCHOR_SPREADS:
             raise ValueError(f"unknown anchor spread {anchors!r}; expected one of {ANCHOR_SPREADS}")
+        if stretch is not None and not (np.isfinite(stretch) and -1.0 < stretch < 1.0):
+            raise ValueError(f"stretch exponent {stretch!r} out of range: expected a number in (-1, 1) or None")
         self.model, self.steps, self.seed, self.device, self.turn = model, steps, seed, device, turn
-        self.anchors = anchors
+        self.anchors, self.stretch = anchors, (float(stretch) if stretch else None)
 
     def further_draws(self) -> tuple[int, ...]:
         """The ``K`` of the model's further draws ``learned+K`` after this source's own
@@ -309,12 +338,12 @@ class ModelSource:
         """The source of the further draw ``learned+k``: the same model and device, at that draw's
         steps, seed offset, turn and anchor spread (:data:`polycubenet.policy.LEARNED_DRAWS`) from this
         source's."""
-        from .policy import draw_anchors, draw_seed, draw_steps, draw_turn
+        from .policy import draw_anchors, draw_seed, draw_steps, draw_stretch, draw_turn
 
         name = f"learned+{int(k)}"
         steps = draw_steps(name, resolve_steps(self.steps, self.device, self.model)[1])
         return ModelSource(self.model, steps=steps, seed=self.seed + draw_seed(name), device=self.device,
-                           turn=draw_turn(name), anchors=draw_anchors(name))
+                           turn=draw_turn(name), anchors=draw_anchors(name), stretch=draw_stretch(name))
 
     def __call__(self, sample, V, F, config) -> PolycubeCloud:
         loaded = load_model(self.model, self.device)
@@ -323,16 +352,22 @@ class ModelSource:
         n = int(getattr(config, "n_learned", None) or config.n_polycube)
         a = model_anchors(loaded, V, F, n, seed, spread=self.anchors)
         cond, anchors = sample.points, None if a is None else [a]
-        if self.turn:  # the part turned (points, and normals alike), the cloud turned back
-            R = TURNS[self.turn]  # a signed diagonal: its own inverse and transpose
-            cond = np.asarray(cond, np.float64) @ R
-            if a is not None:
-                anchors = [np.hstack([a[:, i:i + 3] @ R for i in range(0, a.shape[1], 3)]).astype(np.float32)]
+        d = np.ones(3)  # the view: a turn's signs times a stretch's factors, both diagonal
+        if self.turn:
+            d = d * np.diag(TURNS[self.turn])
+        if self.stretch:
+            d = d * stretch_factors(V, self.stretch)
+        viewed = not np.array_equal(d, np.ones(3))
+        if viewed:  # the part seen through diag(d) (points, and normals by the inverse transpose), the cloud back
+            cond = view_points(cond, d)
+            if a is not None:  # the anchors: xyz, then the normals when the model takes them
+                blocks = [view_points(a[:, :3], d)] + [view_normals(a[:, i:i + 3], d) for i in range(3, a.shape[1], 3)]
+                anchors = [np.hstack(blocks).astype(np.float32)]
         genus = part_genus(F) if loaded.model.config.genus_classes else None
         (cloud,) = generate([cond], n, model=loaded, steps=self.steps,
                             seed=seed, device=self.device, anchors=anchors, genus=[genus])
-        if self.turn:
-            cloud = np.hstack([cloud[:, :3] @ R, cloud[:, 3:6] @ R])
+        if viewed:
+            cloud = np.hstack([view_points(cloud[:, :3], 1.0 / d), view_normals(cloud[:, 3:6], 1.0 / d)])
         meta = {
             "provenance": "learned",
             "checkpoint": str(loaded.path.name if loaded.path else "memory"),
@@ -341,6 +376,8 @@ class ModelSource:
         }
         if self.turn:
             meta["turn"] = self.turn
+        if self.stretch:
+            meta["stretch"] = self.stretch
         if loaded.model.config.genus_classes:
             meta["genus_given"] = genus
         if self.anchors != "uniform" and a is not None:

@@ -74,7 +74,7 @@ MODES = ("auto", "learned", "classical", "voxel")
 #: finer voxel polycubes after the first one (``voxel+1`` ... ``voxel+3``)
 VOXEL_REFINEMENTS = 3
 #: the model's further draws after its first, in order: ``(DDIM steps, seed offset, generator fallbacks, turn[,
-#: anchor spread])`` of
+#: anchor spread[, stretch exponent]])`` of
 #: ``learned+1``, ``learned+2``, ...  (a draw never uses fewer steps than the first; one that would repeat the
 #: first is skipped, :func:`learned_draws`; the fallbacks: :func:`extraction_config`).  Measured on never-seen
 #: parts meshed valid, faithful and >= 0.2 through the learned source (of 16, ``benchmarks/unseen_parts.py
@@ -151,6 +151,14 @@ def draw_anchors(source: str) -> str:
     return entry[4] if len(entry) > 4 else "uniform"
 
 
+def draw_stretch(source: str) -> float | None:
+    """The exponent of a learned source's stretched view of the part (:func:`polycubenet.inference.stretch_factors`):
+    None for ``learned`` and for a further draw whose :data:`LEARNED_DRAWS` entry has no sixth field."""
+    k = refinement(source)[1]
+    entry = LEARNED_DRAWS[k - 1] if k else ()
+    return (float(entry[5]) or None) if len(entry) > 5 and entry[5] is not None else None
+
+
 def draw_fallbacks(source: str) -> bool:
     """Whether a learned source's draw is extracted with the generator fallbacks: always the first draw
     (``learned``), a further draw when its :data:`LEARNED_DRAWS` entry says so."""
@@ -169,11 +177,12 @@ def learned_draws(steps, anchored: bool = True) -> tuple[int, ...]:
     steps can fall together: at 4 steps the table's 1-step and 4-step even draws at seed +1 are one draw."""
     if not _int_steps(steps):
         return ()
-    tried = {(int(steps), 0, None, "uniform"): True}  # cloud -> extracted with the fallbacks
+    tried = {(int(steps), 0, None, "uniform", None): True}  # cloud -> extracted with the fallbacks
     kept = []
     for k in range(1, len(LEARNED_DRAWS) + 1):
         src = f"learned+{k}"
-        cloud = (draw_steps(src, steps), draw_seed(src), draw_turn(src), draw_anchors(src) if anchored else "uniform")
+        cloud = (draw_steps(src, steps), draw_seed(src), draw_turn(src), draw_anchors(src) if anchored else "uniform",
+                 draw_stretch(src))
         if cloud in tried and (tried[cloud] or not draw_fallbacks(src)):
             continue
         tried[cloud] = draw_fallbacks(src)  # here: a new cloud, or one now with the fallbacks
@@ -230,15 +239,16 @@ def source_label(source: str) -> str:
     """How reasons name a source: ``voxel+2`` is "voxel (refinement 2)", ``voxel+3*``
     "voxel (refinement 3, 1.5x hexes)", ``learned+1`` "learned (draw 2, 4 steps)", a draw with another seed
     "learned (draw 3, 4 steps, seed +1)", a turned one "learned (draw 3, 1 step, seed +1, turned about z)", one
-    with evenly spread anchors "learned (draw 4, 1 step, even anchors)" (the
+    with evenly spread anchors "learned (draw 4, 1 step, even anchors)", a stretched one "..., stretched +0.5" (the
     steps of :data:`LEARNED_DRAWS`; a run at more steps draws at its own)."""
     base, k = refinement(source)
     if base == "learned" and k:
         seed = f", seed +{draw_seed(source)}" if draw_seed(source) else ""
         turn = f", turned about {draw_turn(source)}" if draw_turn(source) else ""
         spread = f", {draw_anchors(source)} anchors" if draw_anchors(source) != "uniform" else ""
+        stretch = f", stretched {draw_stretch(source):+g}" if draw_stretch(source) else ""
         n = LEARNED_DRAWS[k - 1][0]
-        return f"learned (draw {k + 1}, {n} step{'s' if n != 1 else ''}{seed}{turn}{spread})"
+        return f"learned (draw {k + 1}, {n} step{'s' if n != 1 else ''}{seed}{turn}{spread}{stretch})"
     if denser(source):
         return f"{base} (refinement {k}, {DENSER_HEXES:g}x hexes)"
     return f"{base} (refinement {k})" if k else source

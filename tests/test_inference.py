@@ -355,6 +355,48 @@ def test_a_turned_draw_is_the_turned_part_drawn_and_turned_back(tmp_path):
         ModelSource(path, turn="w")
 
 
+def test_a_stretched_draw_is_the_part_scaled_along_the_axes_drawn_and_scaled_back(tmp_path):
+    """``ModelSource(stretch=p)``: the model sees the part's samples scaled by ``stretch_factors`` (the box
+    part of the way to a cube, the extents' order and the unit diagonal kept) and the anchors' normals by the
+    inverse, and the cloud comes back scaled the other way with unit normals and the part's own anchors."""
+    import dataclasses
+
+    from polycubenet.inference import model_anchors, stretch_factors
+
+    torch.manual_seed(2)
+    net = PolycubeNet(dataclasses.replace(preset("tiny"), anchored=True, anchor_normals=True))
+    with torch.no_grad():
+        torch.nn.init.normal_(net.denoiser.out.weight, std=0.2)
+    path = save_checkpoint(tmp_path / "tiny-normals.pt", {
+        "kind": "published", "model_config": net.config.to_dict(),
+        "diffusion": Diffusion(prediction="v", schedule="cosine_ztsnr").to_dict(), "ema": net.state_dict()})
+    V = np.array([[0, 0, 0], [0.8, 0, 0], [0, 0.4, 0], [0, 0, 0.2]], float) - 0.2
+    F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    e = np.array([0.8, 0.4, 0.2])
+    d = stretch_factors(V, 0.5)
+    np.testing.assert_allclose(d / d[0], np.sqrt(e[0] / e))  # the box half way (in logs) to a cube
+    np.testing.assert_allclose(np.linalg.norm(e * d), np.linalg.norm(e))  # the same diagonal
+    assert np.all(np.diff(e * d) < 0) and np.all(np.diff(e * stretch_factors(V, -0.5)) < 0)  # order kept
+    np.testing.assert_allclose(stretch_factors(V, 0.0), 1.0)
+    config = PipelineConfig(n_learned=60, seed=3)
+    sample = types.SimpleNamespace(points=_cloud(90, 31).astype(np.float64))
+    plain = ModelSource(path, steps=2, device="cpu")(sample, V, F, config)
+    wide = ModelSource(path, steps=2, device="cpu", stretch=0.5)(sample, V, F, config)
+    a = model_anchors(load_model(path, "cpu"), V, F, 60, 3)
+    n = a[:, 3:] / d
+    aS = np.hstack([a[:, :3] * d, n / np.linalg.norm(n, axis=1, keepdims=True)]).astype(np.float32)
+    (raw,) = generate([sample.points * d], 60, model=path, steps=2, seed=3, device="cpu", anchors=[aS])
+    np.testing.assert_allclose(wide.points, raw[:, :3] / d, atol=1e-6)
+    back = raw[:, 3:] * d
+    np.testing.assert_allclose(wide.normals, back / np.linalg.norm(back, axis=1, keepdims=True), atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(wide.normals, axis=1), 1.0, atol=1e-6)
+    np.testing.assert_allclose(wide.anchors, plain.anchors)
+    assert wide.meta["stretch"] == 0.5 and "stretch" not in plain.meta
+    assert np.abs(wide.points - plain.points).max() > 1e-4
+    with pytest.raises(ValueError, match="stretch exponent"):
+        ModelSource(path, stretch=1.5)
+
+
 def test_a_genus_model_is_told_each_request_s_genus_and_the_model_source_the_part_s(ckpt, tmp_path):
     """A model with ``genus_classes``: ``generate(genus=)`` gives each request its own genus (a batch of
     two genera equals each alone; None is "unknown", not genus 0); ``ModelSource`` tells it the genus of

@@ -7,7 +7,7 @@ import pytest
 
 from polycubenet.errors import PartError, PolycubeError
 from polycubenet import policy
-from polycubenet.policy import (LEARNED_DRAWS, Attempt, draw_anchors, draw_fallbacks, draw_seed, draw_steps, draw_turn, learned_draws, leaves_source, refinement, run_chain,
+from polycubenet.policy import (LEARNED_DRAWS, Attempt, draw_anchors, draw_fallbacks, draw_seed, draw_steps, draw_stretch, draw_turn, learned_draws, leaves_source, refinement, run_chain,
                                 source_label, source_names)
 
 
@@ -108,6 +108,15 @@ def test_the_models_further_draws_follow_the_first(monkeypatch):
     assert [draw_anchors(s) for s in ("learned", "learned+1", "learned+2")] == ["uniform", "even", "uniform"]
     assert learned_draws(1) == (1,) == learned_draws(4)  # the uniform one repeats the first
     assert source_label("learned+1") == "learned (draw 2, 1 step, even anchors)"
+    # a draw of the part stretched along the axes: not a repeat of the same draw unstretched, nor of one
+    # stretched another way; named with its exponent
+    monkeypatch.setattr(policy, "LEARNED_DRAWS", ((1, 0, True, None, "even"), (1, 0, True, None, "even", 0.5),
+                                                  (1, 0, True, None, "even", -0.4), (1, 0, True, None, "even", 0.5),
+                                                  (1, 0, True, None, "uniform", 0.0)))
+    assert [draw_stretch(f"learned+{k}") for k in range(6)] == [None, None, 0.5, -0.4, 0.5, None]
+    assert learned_draws(1) == (1, 2, 3)  # the fourth repeats the second, the fifth (no stretch) the first
+    assert source_label("learned+2") == "learned (draw 3, 1 step, even anchors, stretched +0.5)"
+    assert source_label("learned+3") == "learned (draw 4, 1 step, even anchors, stretched -0.4)"
     # a longer table: never with fewer steps than the first, never repeating the first
     monkeypatch.setattr(policy, "LEARNED_DRAWS", ((4, 0, False), (4, 1, False), (4, 2, False)))
     assert learned_draws(1) == (1, 2, 3) and learned_draws(4) == (2, 3) and learned_draws("stride4") == ()
