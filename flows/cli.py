@@ -172,8 +172,8 @@ def _print_summary(out: str) -> None:
     n_ok = sum(r["status"] == "meshed" for r in rows)
     n_bad = sum(r["status"] == "meshed" and not (r.get("quality") or {}).get("valid") for r in rows)
     bar = library.quality_bar(m)
-    n_under = sum(library.under_quality_bar(s, bar) for s in summary)
-    under = f", {n_under} valid but under the quality bar (SJ min < {bar:g})" if n_under else ""
+    flagged = library.flagged_counts(summary, bar)
+    under = f", {flagged}" if flagged else ""
     print(f"\n{len(rows)} parts: {n_ok} meshed ({n_bad} of them flagged invalid: see quality.json{under}), {len(rows) - n_ok} failed.  manifest: {Path(out) / library.MANIFEST}"
           f"  report: {Path(out) / library.REPORT}")
     last = m.get("last_run") or {}

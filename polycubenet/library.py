@@ -43,7 +43,9 @@ from .atomic import load_npz, save_npz, write_json, write_text
 from .data import HexMesh, Part, Polycube, PolycubeCloud, SurfaceSample
 from .errors import PolycubeError
 from .pipeline import OracleSource, PartResult, PipelineConfig, register_cloud
-from .policy import draw_anchors, draw_seed, draw_steps, draw_turn, extraction_config, refinement, source_config, under_bar
+from . import tol
+from .policy import (draw_anchors, draw_seed, draw_steps, draw_turn, extraction_config, faithful, refinement,
+                     source_config, under_bar)
 
 #: part files the library reads (``polycubenet.io.load_part``)
 CAD_SUFFIXES = (".step", ".stp", ".iges", ".igs")
@@ -687,22 +689,45 @@ def under_quality_bar(summary: dict, min_sj: float | None) -> bool:
     return summary["status"] == "meshed" and summary["valid"] and under_bar(summary, min_sj)
 
 
+def off_part(summary: dict) -> bool:
+    """Whether a :func:`summary_rows` row is a part meshed valid whose mesh is farther from the part than the
+    Hausdorff bar (:func:`polycubenet.policy.faithful`, :data:`polycubenet.tol.HAUSDORFF_REL_MAX` of the diagonal):
+    the best mesh any source gave, kept, but not the part's shape.  A row without the measure is not marked."""
+    pct = summary.get("hausdorff_pct")
+    return (summary["status"] == "meshed" and summary["valid"] and pct is not None
+            and not faithful({"hausdorff": pct / 100.0}))
+
+
+def flagged_counts(summary: list[dict], min_sj: float | None) -> str:
+    """The parts meshed valid but short of a bar, as the report and the command line say them: those under the
+    quality bar ``min_sj`` (:func:`under_quality_bar`) and those off the part (:func:`off_part`); "" when none."""
+    n_under = sum(under_quality_bar(s, min_sj) for s in summary)
+    n_off = sum(off_part(s) for s in summary)
+    said = []
+    if n_under:
+        said.append(f"{n_under} valid but under the quality bar (SJ min < {min_sj:g})")
+    if n_off:
+        said.append(f"{n_off} valid but off the part (Hausdorff > {100 * tol.HAUSDORFF_REL_MAX:g} % of the diagonal)")
+    return ", ".join(said)
+
+
 def write_report_html(out: str | os.PathLike, rows: list[dict], *, title: str = "PolycubeNet meshing report",
                       min_sj: float | None = None) -> Path:
     """``<out>/report.html``: counts, a table (status, polycube, quality, time, error) and the
     pictures of every meshed part (relative links to ``<part>/preview.png``, ``quality.png``).  A part meshed
-    valid but under the quality bar ``min_sj`` is marked as a meshed part not valid is, and counted."""
+    valid but under the quality bar ``min_sj`` or off the part (:func:`flagged_counts`) is marked as a meshed part
+    not valid is, and counted."""
     out = Path(out)
     esc = html.escape
     n_ok = sum(r["status"] == "meshed" for r in rows)
     summary = summary_rows(rows)
-    n_under = sum(under_quality_bar(s, min_sj) for s in summary)
-    under = f" {n_under} meshed under the quality bar (SJ min < {min_sj:g})." if n_under else ""
+    flagged = flagged_counts(summary, min_sj)
+    under = f" Meshed short of a bar: {flagged}." if flagged else ""
     head = ("<th>part</th><th>status</th><th>stage</th><th>polycube</th><th>hexes</th><th>SJ min</th><th>SJ avg</th>"
             "<th>Hausdorff %</th><th>valid</th><th>time s</th><th>error</th>")
     body = []
     for s in summary:
-        good = s["status"] == "meshed" and s["valid"] and not under_quality_bar(s, min_sj)
+        good = s["status"] == "meshed" and s["valid"] and not under_quality_bar(s, min_sj) and not off_part(s)
         cls = "ok" if good else ("warn" if s["status"] == "meshed" else "bad")
         body.append(
             f"<tr class='{cls}'><td><a href='#{esc(s['part'])}'>{esc(s['part'])}</a></td><td>{esc(s['status'])}</td>"

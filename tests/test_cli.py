@@ -12,12 +12,12 @@ from flows import cli
 from polycubenet import library
 
 
-def _manifest(out, min_sj=None):
+def _manifest(out, min_sj=None, hausdorff=0.004):
     rows = [
         {"name": "bracket", "path": "/parts/bracket.step", "hash": "a" * 64, "status": "meshed", "stage": "export",
          "error": None, "provenance": "learned", "fallback": None, "timings": {"load_sample": 0.5, "export": 1.25},
          "computed": ["load_sample", "export"], "reused": [], "files": ["hex.vtu", "preview.png"],
-         "quality": {"hexes": 4800, "sj_min": 0.31, "sj_avg": 0.93, "valid": True, "hausdorff": 0.004}},
+         "quality": {"hexes": 4800, "sj_min": 0.31, "sj_avg": 0.93, "valid": True, "hausdorff": hausdorff}},
         {"name": "crushed", "path": "/parts/crushed.stl", "hash": "b" * 64, "status": "failed", "stage": "load_sample",
          "error": "OpenBoundaryError: /parts/crushed.stl: 12 boundary edges", "provenance": None, "fallback": None,
          "timings": {}, "computed": [], "reused": [], "files": [], "quality": None},
@@ -51,8 +51,24 @@ def test_a_part_meshed_under_the_runs_quality_bar_is_marked(tmp_path, capsys, ba
     html = (tmp_path / "report.html").read_text()
     row = next(ln for ln in html.splitlines() if ">bracket</a>" in ln)
     assert ("class='warn'" in row) == under and ("class='ok'" in row) == (not under)
-    assert ("1 meshed under the quality bar (SJ min < 0.35)" in html) == under
+    assert ("1 valid but under the quality bar (SJ min < 0.35)" in html) == under
     assert ("1 valid but under the quality bar (SJ min < 0.35)" in text) == under
+
+
+@pytest.mark.parametrize("hausdorff, off", [(0.004, False), (0.0100, False), (0.082, True), (None, False)])
+def test_a_valid_part_meshed_off_its_surface_is_marked(tmp_path, capsys, hausdorff, off):
+    """A valid mesh farther from the part than the Hausdorff bar (1 % of the diagonal: the best any source gave, kept)
+    is marked in the report and counted in the summary, as a part under the quality bar is; one within it, or
+    without the measure, is not."""
+    _manifest(tmp_path, min_sj=0.2, hausdorff=hausdorff)
+    assert cli.main(["report", str(tmp_path)]) == 0
+    text = capsys.readouterr().out
+    html = (tmp_path / "report.html").read_text()
+    row = next(ln for ln in html.splitlines() if ">bracket</a>" in ln)
+    assert ("class='warn'" in row) == off and ("class='ok'" in row) == (not off)
+    said = "1 valid but off the part (Hausdorff > 1 % of the diagonal)"
+    assert (said in html) == off and (said in text) == off
+    assert "under the quality bar" not in text
 
 
 def test_usage_errors_exit_2_without_running_anything(tmp_path, capsys):
