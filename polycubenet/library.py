@@ -716,7 +716,7 @@ def write_report_html(out: str | os.PathLike, rows: list[dict], *, title: str = 
     """``<out>/report.html``: counts, a table (status, polycube, quality, time, error) and the
     pictures of every meshed part (relative links to ``<part>/preview.png``, ``quality.png``).  A part meshed
     valid but under the quality bar ``min_sj`` or off the part (:func:`flagged_counts`) is marked as a meshed part
-    not valid is, and counted."""
+    not valid is, and counted; each part's quality warnings (``quality.json``) head its section."""
     out = Path(out)
     esc = html.escape
     n_ok = sum(r["status"] == "meshed" for r in rows)
@@ -742,13 +742,15 @@ def write_report_html(out: str | os.PathLike, rows: list[dict], *, title: str = 
         pics = "".join(f"<img src='{esc(d)}/{p}' alt='{p}'>" for p in ("preview.png", "quality.png")
                        if (out / d / p).is_file())
         files = " ".join(f"<a href='{esc(d)}/{esc(f)}'>{esc(f)}</a>" for f in r.get("files", []))
-        cards.append(f"<section id='{esc(d)}'><h3>{esc(d)}</h3><p>{files}</p>{pics}</section>")
+        said = "".join(f"<li>{esc(w)}</li>" for w in ((r.get("quality") or {}).get("warnings") or []))
+        said = f"<ul class='warn'>{said}</ul>" if said else ""
+        cards.append(f"<section id='{esc(d)}'><h3>{esc(d)}</h3>{said}<p>{files}</p>{pics}</section>")
     doc = f"""<!doctype html>
 <html><head><meta charset="utf-8"><title>{esc(title)}</title>
 <style>
 body {{ font-family: sans-serif; margin: 2em; }} table {{ border-collapse: collapse; }}
 td, th {{ border: 1px solid #ccc; padding: 3px 8px; font-size: 13px; }} tr.bad {{ background: #fdd; }}
-tr.warn {{ background: #ffd; }} section img {{ max-width: 480px; margin-right: 1em; }}
+tr.warn {{ background: #ffd; }} ul.warn {{ background: #ffd; }} section img {{ max-width: 480px; margin-right: 1em; }}
 </style></head><body>
 <h1>{esc(title)}</h1>
 <p>{len(rows)} parts: {n_ok} meshed, {len(rows) - n_ok} failed.{under} Generated {time.strftime('%Y-%m-%d %H:%M:%S')}.</p>

@@ -307,6 +307,91 @@ def surface_distance(va, fa, vb, fb, *, n_samples: int = 200_000, seed: int = 0)
     return out
 
 
+def thin_features(V, F, below: float, *, n_samples: int = 20_000, seed: int = 0,
+                  min_area_fraction: float = 1e-3, parallel_cos: float = 0.8) -> dict:
+    """The part's walls and gaps thinner than ``below`` (absolute length), read by rays.
+
+    From ``n_samples`` area-uniform points of the closed, outward surface ``(V, F)``, a ray goes inward along
+    the face's normal (the wall: the distance to where it leaves the solid) and one outward (the gap: the
+    distance to where it meets the part again).  Only hits on a face roughly parallel to the start's
+    (``|cos| >= parallel_cos``) count: the two sides of a fin or a slot, not a wedge's other face at a knife
+    edge or a neighbouring face near an edge.  A feature thinner than about one hex edge cannot be followed by
+    a mesh of that size, whatever its polycube: this is what a valid mesh far off such a part ran into.
+
+    Returns ``{"walls": {...}, "gaps": {...}}``, each with ``area_fraction`` (of the surface, where that
+    feature is thinner than ``below``) and ``median`` (the median thickness there, absolute), or None for a
+    kind covering less than ``min_area_fraction`` of the surface.
+    """
+    from ._o3d import open3d as o3d
+
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    diag = float(np.linalg.norm(hi - lo))
+    centre = 0.5 * (lo + hi)
+    nv = (V - centre) / diag  # the diagonal-1 frame keeps float32 rays precise
+    tri = nv[F]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = np.linalg.norm(cross, axis=1)
+    ok = area > 0
+    if not ok.any():
+        return {"walls": None, "gaps": None}
+    normals = np.zeros_like(cross)
+    normals[ok] = cross[ok] / area[ok, None]
+    rng = np.random.default_rng(seed)
+    idx = np.searchsorted(np.cumsum(area) / area.sum(), rng.random(n_samples), side="right")
+    idx = np.minimum(idx, len(F) - 1)
+    r1, r2 = np.sqrt(rng.random(n_samples)), rng.random(n_samples)
+    a, b, c = tri[idx, 0], tri[idx, 1], tri[idx, 2]
+    pts = (1 - r1)[:, None] * a + (r1 * (1 - r2))[:, None] * b + (r1 * r2)[:, None] * c
+    n = normals[idx]
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(nv, dtype=np.float32)),
+                        o3d.core.Tensor(np.ascontiguousarray(F, dtype=np.uint32)))
+    eps = 1e-5
+    out = {}
+    for kind, sign in (("walls", -1.0), ("gaps", 1.0)):
+        d = sign * n
+        rays = np.hstack([pts + eps * d, d]).astype(np.float32)
+        hit = scene.cast_rays(o3d.core.Tensor(rays))
+        t = hit["t_hit"].numpy().astype(np.float64) + eps
+        prim = hit["primitive_ids"].numpy().astype(np.int64)
+        found = np.isfinite(t) & (prim >= 0) & (prim < len(F))
+        cos = np.zeros(n_samples)
+        cos[found] = np.abs(np.einsum("ij,ij->i", normals[prim[found]], n[found]))
+        thin = found & (cos >= parallel_cos) & (t * diag < below)
+        frac = float(thin.mean())
+        out[kind] = None if frac < min_area_fraction else {"area_fraction": frac,
+                                                            "median": float(np.median(t[thin]) * diag)}
+    return out
+
+
+def _edge_length(points: np.ndarray, hexes: np.ndarray) -> float:
+    """The median length of the hexes' edges along their first three directions (0 for no hexes)."""
+    if not len(hexes):
+        return 0.0
+    e = [np.linalg.norm(points[hexes[:, j]] - points[hexes[:, 0]], axis=1) for j in (1, 3, 4)]
+    return float(np.median(np.concatenate(e)))
+
+
+def thin_feature_sentence(V, F, points, hexes) -> str | None:
+    """Why a valid mesh may sit off its part, when the part says so: the walls and gaps of ``(V, F)`` thinner
+    than the mesh's typical hex edge (:func:`thin_features`), as one sentence with their size and the hex size
+    (None when the part has none)."""
+    h = _edge_length(np.asarray(points, float), np.asarray(hexes))
+    if h <= 0:
+        return None
+    thin = thin_features(V, F, h)
+    diag = float(np.linalg.norm(np.ptp(np.asarray(V, float), axis=0)))
+    said = [f"{word} about {t['median']:.3g} thick ({100 * t['median'] / diag:.2g}% of the diagonal) over "
+            f"{100 * t['area_fraction']:.2g}% of its surface"
+            for word, t in (("walls", thin["walls"]), ("gaps", thin["gaps"])) if t is not None]
+    if not said:
+        return None
+    return (f"The part has {' and '.join(said)}, thinner than the mesh's hexes (edge about {h:.3g}): a hex mesh "
+            f"follows them only with elements smaller than they are (a smaller --size), or on a part without them.")
+
+
 # --------------------------------------------------------------------------- report
 
 
@@ -537,6 +622,10 @@ def quality_report(
                     f"The hex boundary is up to {100 * d['hausdorff']:.3f}% of the bounding-box diagonal away "
                     f"from the input surface (Hausdorff), above the {100 * max_hausdorff_rel:g}% bar."
                 )
+                if valid:  # a valid mesh of the wrong shape: say when the part's own thin features explain it
+                    why = thin_feature_sentence(V, F, points, hexes)
+                    if why:
+                        warnings.append(why)
 
     return QualityReport(
         hex_count=H,
@@ -567,6 +656,7 @@ __all__ = [
     "scaled_jacobian_and_degenerate",
     "vtk_scaled_jacobian",
     "surface_distance",
+    "thin_features",
     "QualityReport",
     "quality_report",
 ]

@@ -17,7 +17,8 @@ def _manifest(out, min_sj=None, hausdorff=0.004):
         {"name": "bracket", "path": "/parts/bracket.step", "hash": "a" * 64, "status": "meshed", "stage": "export",
          "error": None, "provenance": "learned", "fallback": None, "timings": {"load_sample": 0.5, "export": 1.25},
          "computed": ["load_sample", "export"], "reused": [], "files": ["hex.vtu", "preview.png"],
-         "quality": {"hexes": 4800, "sj_min": 0.31, "sj_avg": 0.93, "valid": True, "hausdorff": hausdorff}},
+         "quality": {"hexes": 4800, "sj_min": 0.31, "sj_avg": 0.93, "valid": True, "hausdorff": hausdorff,
+                     "warnings": ["The part has walls about 0.27 thick (0.31% of the diagonal) over 5.9% of its surface."]}},
         {"name": "crushed", "path": "/parts/crushed.stl", "hash": "b" * 64, "status": "failed", "stage": "load_sample",
          "error": "OpenBoundaryError: /parts/crushed.stl: 12 boundary edges", "provenance": None, "fallback": None,
          "timings": {}, "computed": [], "reused": [], "files": [], "quality": None},
@@ -68,6 +69,7 @@ def test_a_valid_part_meshed_off_its_surface_is_marked(tmp_path, capsys, hausdor
     assert ("class='warn'" in row) == off and ("class='ok'" in row) == (not off)
     said = "1 valid but off the part (Hausdorff > 1 % of the diagonal)"
     assert (said in html) == off and (said in text) == off
+    assert "walls about 0.27 thick" in html  # the part's quality warnings head its section
     assert "under the quality bar" not in text
 
 

@@ -22,6 +22,7 @@ from polycubenet.quality import (
     quality_report,
     scaled_jacobian,
     scaled_jacobian_and_degenerate,
+    thin_features,
     vtk_scaled_jacobian,
 )
 
@@ -211,6 +212,45 @@ def test_report_measures_distance_to_a_larger_cube():
     assert s["diagonal"] == pytest.approx(1.1 * np.sqrt(3))
     assert r.valid  # elements are fine; the distance only warns
     assert any("Hausdorff" in w for w in r.warnings)
+
+
+def _boxes(*bounds):
+    """One triangle surface of several boxes (``[[lo], [hi]]`` each), outward, not merged."""
+    import trimesh
+
+    parts = [trimesh.creation.box(bounds=b) for b in bounds]
+    V = np.concatenate([p.vertices for p in parts])
+    offsets = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])
+    F = np.concatenate([p.faces + o for p, o in zip(parts, offsets)])
+    return np.asarray(V, float), np.asarray(F, np.int64)
+
+
+def test_thin_features_reads_a_plates_wall_and_the_gap_beside_it():
+    plate = _boxes([[0, 0, 0], [10, 10, 0.2]])
+    t = thin_features(*plate, below=1.0)
+    assert t["gaps"] is None
+    assert t["walls"]["median"] == pytest.approx(0.2, rel=1e-3)
+    assert t["walls"]["area_fraction"] == pytest.approx(200 / 208, abs=0.02)  # both big faces, not the rims
+    assert thin_features(*plate, below=0.1) == {"walls": None, "gaps": None}  # nothing thinner than 0.1
+    assert thin_features(*cube_surface(0.0, 10.0), below=1.0) == {"walls": None, "gaps": None}
+    two = _boxes([[0, 0, 0], [10, 10, 4]], [[0, 0, 4.3], [10, 10, 8]])  # a 0.3 slot between two blocks
+    t = thin_features(*two, below=1.0)
+    assert t["walls"] is None and t["gaps"]["median"] == pytest.approx(0.3, rel=1e-3)
+
+
+def test_a_valid_mesh_off_a_part_with_features_thinner_than_its_hexes_says_so():
+    """The unit cube meshed in 4^3 hexes (edge 0.25) against a part that also has a plate 0.02 thick floating
+    0.1 above it: valid, off the part, and the warning names the thin wall and the gap and the hex size; the
+    same mesh against a larger plain cube warns of the distance only."""
+    part = _boxes([[0, 0, 0], [1, 1, 1]], [[0, 0, 1.1], [1, 1, 1.12]])
+    r = quality_report(structured(4), part, n_samples=20_000)
+    assert r.valid and any("Hausdorff" in w for w in r.warnings)
+    why = [w for w in r.warnings if "thinner than the mesh's hexes" in w]
+    assert len(why) == 1 and "walls about 0.02 thick" in why[0] and "gaps about 0.1 thick" in why[0]
+    assert "edge about 0.25" in why[0]
+    plain = quality_report(structured(4), cube_surface(-0.05, 1.05), n_samples=20_000)
+    assert any("Hausdorff" in w for w in plain.warnings)
+    assert not any("thinner" in w for w in plain.warnings)
 
 
 def test_mirrored_mesh_is_flagged():
