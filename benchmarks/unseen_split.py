@@ -8,7 +8,10 @@ draws them from their seed, so they are the parts that were meshed) only to read
 sharpest convex edge, and counts the parts meshed (valid, within the Hausdorff and quality bars, learned
 provenance: what ``learned_meshes.py`` counts) in each class of ``unseen_losses.py``: by shape (no slanted end,
 a slanted end, a slanted end and a round through-hole: :func:`unseen_losses.shape_class`) and by the sharpest
-convex edge (:data:`unseen_losses.EDGE_BINS`).  No model is run.  Prints one table per split, each row with
+convex edge (:data:`unseen_losses.EDGE_BINS`), and by whether the part has walls or gaps thinner than the hexes of
+a ``learned_meshes.py`` mesh (:data:`THIN_BINS`; :func:`polycubenet.quality.thin_features` at the edge of a cube of
+the part's volume over :data:`HEXES`: features no mesh of that size follows, whatever its polycube).  No model is
+run.  Prints one table per split, each row with
 the count per file and over all of them; writes the JSON.
 """
 from __future__ import annotations
@@ -24,9 +27,31 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from unseen_losses import EDGE_BINS, SHAPES, edge_class, shape_class  # noqa: E402
-from unseen_parts import knife_edge_deg, make_parts  # noqa: E402
+from unseen_parts import make_parts  # noqa: E402
 
 from polycubenet.atomic import write_json  # noqa: E402
+
+#: the hexes of a learned_meshes.py mesh (unseen_parts.mesh_learned's target_hexes)
+HEXES = 3000
+THIN_BINS = ("no wall or gap thinner than a hex", "walls or gaps thinner than a hex")
+
+
+def thin_class(thin: bool | None) -> str | None:
+    """The :data:`THIN_BINS` bin of a part (None: not known)."""
+    return None if thin is None else THIN_BINS[int(bool(thin))]
+
+
+def read_part(path: Path) -> tuple[float, bool]:
+    """A part's sharpest convex edge (degrees; :func:`polycubenet.io.sharpest_convex_edge_deg`) and whether it has
+    walls or gaps thinner than the edge of a cube of its volume over :data:`HEXES` (over at least 0.1 % of its
+    surface: :func:`polycubenet.quality.thin_features`)."""
+    from polycubenet.io import load_part
+    from polycubenet.quality import thin_features
+
+    part = load_part(path)
+    h = (abs(float(part.meta["volume"])) / HEXES) ** (1 / 3)
+    thin = thin_features(part.vertices, part.faces, h)
+    return float(part.meta["sharpest_edge_deg"]), any(v is not None for v in thin.values())
 
 
 def read_arm(path: Path, arm: str | None) -> tuple[str, dict[str, bool], list[str], int]:
@@ -39,28 +64,30 @@ def read_arm(path: Path, arm: str | None) -> tuple[str, dict[str, bool], list[st
     return name, {part: bool(row[0]) for part, row in d["rows"][name].items()}, list(d["sets"]), int(d["count"])
 
 
-def describe(sets: list[str], count: int, tmp: Path) -> dict[str, tuple[str, float]]:
-    """``{part: (description, sharpest convex edge in degrees)}`` of the never-seen sets, rebuilt from their seeds."""
+def describe(sets: list[str], count: int, tmp: Path) -> dict[str, tuple[str, float, bool]]:
+    """``{part: (description, sharpest convex edge in degrees, thin features)}`` of the never-seen sets, rebuilt from
+    their seeds (:func:`read_part`)."""
     out = {}
     for spec in sets:
         family, seed = spec.split(":")
         folder = tmp / spec.replace(":", "_")
         folder.mkdir(parents=True, exist_ok=True)
         for p, desc in make_parts(folder, count, int(seed), family):
-            out[p.stem] = (desc, knife_edge_deg(p))
+            out[p.stem] = (desc, *read_part(p))
             p.unlink()
     return out
 
 
-def split(meshed: dict[str, bool], info: dict[str, tuple[str, float]],
+def split(meshed: dict[str, bool], info: dict[str, tuple[str, float, bool]],
           out: dict[str, dict[str, list[int]]] | None = None) -> dict[str, dict[str, list[int]]]:
-    """``{"shape": {class: [meshed, parts]}, "edge": {bin: [meshed, parts]}}``, added to ``out`` when given; a part
+    """``{"shape": {class: [meshed, parts]}, "edge": {bin: [meshed, parts]}, "thin": {bin: [meshed, parts]}}``,
+    added to ``out`` when given; a part
     whose build is not found again (an OpenCASCADE build that differs between machines) is counted under
     ``unknown``."""
-    out = {"shape": {}, "edge": {}} if out is None else out
+    out = {"shape": {}, "edge": {}, "thin": {}} if out is None else out
     for part, ok in meshed.items():
-        desc, deg = info.get(part, (None, None))
-        for key, cls in (("shape", shape_class(desc)), ("edge", edge_class(deg))):
+        desc, deg, thin = info.get(part, (None, None, None))
+        for key, cls in (("shape", shape_class(desc)), ("edge", edge_class(deg)), ("thin", thin_class(thin))):
             cell = out[key].setdefault(cls or "unknown", [0, 0])
             cell[0] += int(ok)
             cell[1] += 1
@@ -74,17 +101,17 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, default=ROOT / "benchmarks/results/unseen_split.json")
     args = ap.parse_args(argv)
 
-    per_file, total = {}, {"shape": {}, "edge": {}}
+    per_file, total = {}, {"shape": {}, "edge": {}, "thin": {}}
     with tempfile.TemporaryDirectory() as tmp:
         for f in args.results:
             arm, meshed, sets, count = read_arm(f, args.arm)
             info = describe(sets, count, Path(tmp) / f.stem)
             per_file[f.stem] = {"arm": arm, "sets": sets, "meshed": sum(meshed.values()), "parts": len(meshed),
                                 "split": split(meshed, info),
-                                "parts_missed": {p: info.get(p, (None, None))[0] for p, ok in meshed.items() if not ok}}
+                                "parts_missed": {p: info.get(p, (None,))[0] for p, ok in meshed.items() if not ok}}
             split(meshed, info, total)
             print(f"{f.stem}: {per_file[f.stem]['meshed']} / {len(meshed)} (arm {arm})", flush=True)
-    for key, order in (("shape", SHAPES), ("edge", EDGE_BINS)):
+    for key, order in (("shape", SHAPES), ("edge", EDGE_BINS), ("thin", THIN_BINS)):
         classes = [c for c in (*order, "unknown") if c in total[key]]
         print(f"\n{'by ' + key:<44}" + "".join(f"{c[:22]:>24}" for c in classes))
         for name, r in per_file.items():
