@@ -215,21 +215,25 @@ def _to_pyvista(points, hexes):
 # --------------------------------------------------------------------------- surface distance
 
 
+def _area_samples(tri: np.ndarray, area: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` area-uniform random points on the triangles ``tri`` (T, 3, 3) of areas ``area`` (total > 0), and the
+    index of the triangle each lies on."""
+    idx = np.searchsorted(np.cumsum(area) / area.sum(), rng.random(n), side="right")
+    idx = np.minimum(idx, len(tri) - 1)
+    r1 = np.sqrt(rng.random(n))
+    r2 = rng.random(n)
+    a, b, c = tri[idx, 0], tri[idx, 1], tri[idx, 2]
+    return (1 - r1)[:, None] * a + (r1 * (1 - r2))[:, None] * b + (r1 * r2)[:, None] * c, idx
+
+
 def _sample_triangles(V: np.ndarray, F: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
     """``n`` area-uniform random points on triangles ``V[F]``, plus all used vertices."""
     tri = V[F]
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    total = area.sum()
     used = V[np.unique(F)]
-    if n <= 0 or total <= 0:
+    if n <= 0 or area.sum() <= 0:
         return used
-    idx = np.searchsorted(np.cumsum(area) / total, rng.random(n), side="right")
-    idx = np.minimum(idx, len(F) - 1)
-    r1 = np.sqrt(rng.random(n))
-    r2 = rng.random(n)
-    a, b, c = tri[idx, 0], tri[idx, 1], tri[idx, 2]
-    pts = (1 - r1)[:, None] * a + (r1 * (1 - r2))[:, None] * b + (r1 * r2)[:, None] * c
-    return np.vstack([used, pts])
+    return np.vstack([used, _area_samples(tri, area, n, rng)[0]])
 
 
 def _point_triangle_distance(query: np.ndarray, V: np.ndarray, F: np.ndarray) -> np.ndarray:
@@ -338,12 +342,7 @@ def thin_features(V, F, below: float, *, n_samples: int = 20_000, seed: int = 0,
         return {"walls": None, "gaps": None}
     normals = np.zeros_like(cross)
     normals[ok] = cross[ok] / area[ok, None]
-    rng = np.random.default_rng(seed)
-    idx = np.searchsorted(np.cumsum(area) / area.sum(), rng.random(n_samples), side="right")
-    idx = np.minimum(idx, len(F) - 1)
-    r1, r2 = np.sqrt(rng.random(n_samples)), rng.random(n_samples)
-    a, b, c = tri[idx, 0], tri[idx, 1], tri[idx, 2]
-    pts = (1 - r1)[:, None] * a + (r1 * (1 - r2))[:, None] * b + (r1 * r2)[:, None] * c
+    pts, idx = _area_samples(tri, area, n_samples, np.random.default_rng(seed))
     n = normals[idx]
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(nv, dtype=np.float32)),
