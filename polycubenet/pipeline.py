@@ -90,7 +90,7 @@ class PipelineConfig:
     n_sample : points on the part (the model's condition and the registration target)
     n_polycube : points of the classical and voxel polycube clouds
     n_learned : points the model generates for the learned polycube (its cost is linear in
-        them; 4096 resolve the structure of CAD-like parts, see benchmarks/bench_learned_cost.py)
+        them, benchmarks/bench_inference.py; 4096 resolve the structure of CAD-like parts)
     n_register : polycube points used by CPD (a random subset; the field is evaluable anywhere)
     target_hexes : approximate hex count (``target_size`` wins when set)
     target_size : element edge length relative to the part's bounding-box diagonal
