@@ -10,9 +10,11 @@ provenance: what ``learned_meshes.py`` counts) in each class of ``unseen_losses.
 a slanted end, a slanted end and a round through-hole: :func:`unseen_losses.shape_class`) and by the sharpest
 convex edge (:data:`unseen_losses.EDGE_BINS`), and by whether the part has walls or gaps thinner than the hexes of
 a ``learned_meshes.py`` mesh (:data:`THIN_BINS`; :func:`polycubenet.quality.thin_features` at the edge of a cube of
-the part's volume over :data:`HEXES`: features no mesh of that size follows, whatever its polycube).  No model is
-run.  Prints one table per split, each row with
-the count per file and over all of them; writes the JSON.
+the part's volume over :data:`HEXES`: features no mesh of that size follows, whatever its polycube), by how thin
+they are against that hex edge (:data:`DEPTH_BINS`: the median thickness of the thinnest kind over the edge), and
+into parts like the examples or not (:data:`LIKE_BINS`: no knife edge, nothing thinner than :data:`THIN_LIKE` of
+a hex).  No model is run.  Prints one table per split, each row with the count per file and over all of them;
+writes the JSON, with every part's sharpest edge, thickness ratio and whether it was meshed.
 """
 from __future__ import annotations
 
@@ -34,24 +36,51 @@ from polycubenet.atomic import write_json  # noqa: E402
 #: the hexes of a learned_meshes.py mesh (unseen_parts.mesh_learned's target_hexes)
 HEXES = 3000
 THIN_BINS = ("no wall or gap thinner than a hex", "walls or gaps thinner than a hex")
+#: the thinnest feature's median thickness over the hex edge, binned (the first: none thinner than a hex)
+DEPTH_BINS = ("none thinner than a hex", "0.5-1 hex", "0.3-0.5 hex", "0.15-0.3 hex", "under 0.15 hex")
+#: a part like the examples has no convex edge sharper than 130 degrees (every example's is 90-111) and no wall or
+#: gap thinner than this fraction of a hex.  Session 79 chose the fraction on the fresh sets of sessions 73-79
+#: (the knife-edge-free parts' misses all had walls under 0.15 of a hex, none of their meshed parts did) and
+#: then read it on the session 66-72 files, which it had not seen (MODEL_CARD.md, "Session 79")
+THIN_LIKE = 0.15
+LIKE_BINS = ("like the examples (edges <= 130 deg, nothing under 0.15 hex)", "knife edge or features under 0.15 hex")
 
 
-def thin_class(thin: bool | None) -> str | None:
-    """The :data:`THIN_BINS` bin of a part (None: not known)."""
-    return None if thin is None else THIN_BINS[int(bool(thin))]
+def thin_class(ratio: float | None | bool) -> str | None:
+    """The :data:`THIN_BINS` bin of a part's thickness ratio (:func:`read_part`; ``False`` or None: no thin
+    feature; a part not known has no entry)."""
+    return THIN_BINS[int(ratio is not None and ratio is not False)]
 
 
-def read_part(path: Path) -> tuple[float, bool]:
-    """A part's sharpest convex edge (degrees; :func:`polycubenet.io.sharpest_convex_edge_deg`) and whether it has
-    walls or gaps thinner than the edge of a cube of its volume over :data:`HEXES` (over at least 0.1 % of its
-    surface: :func:`polycubenet.quality.thin_features`)."""
+def depth_class(ratio: float | None) -> str:
+    """The :data:`DEPTH_BINS` bin of a part's thickness ratio (None: nothing thinner than a hex)."""
+    if ratio is None:
+        return DEPTH_BINS[0]
+    return DEPTH_BINS[1] if ratio >= 0.5 else DEPTH_BINS[2] if ratio >= 0.3 else \
+        DEPTH_BINS[3] if ratio >= THIN_LIKE else DEPTH_BINS[4]
+
+
+def like_class(deg: float | None, ratio: float | None) -> str | None:
+    """The :data:`LIKE_BINS` bin of a part with sharpest convex edge ``deg`` and thickness ratio ``ratio``
+    (None when the edge is not known)."""
+    if deg is None:
+        return None
+    return LIKE_BINS[0] if deg <= 130 and (ratio is None or ratio >= THIN_LIKE) else LIKE_BINS[1]
+
+
+def read_part(path: Path) -> tuple[float, float | None]:
+    """A part's sharpest convex edge (degrees; :func:`polycubenet.io.sharpest_convex_edge_deg`) and how thin its
+    thinnest walls or gaps are: of the kinds thinner than the edge ``h`` of a cube of its volume over :data:`HEXES`
+    (over at least 0.1 % of its surface: :func:`polycubenet.quality.thin_features`), the smallest median thickness
+    over ``h``; None when it has none."""
     from polycubenet.io import load_part
     from polycubenet.quality import thin_features
 
     part = load_part(path)
     h = (abs(float(part.meta["volume"])) / HEXES) ** (1 / 3)
     thin = thin_features(part.vertices, part.faces, h)
-    return float(part.meta["sharpest_edge_deg"]), any(v is not None for v in thin.values())
+    ratios = [v["median"] / h for v in thin.values() if v is not None]
+    return float(part.meta["sharpest_edge_deg"]), (round(min(ratios), 3) if ratios else None)
 
 
 def read_arm(path: Path, arm: str | None) -> tuple[str, dict[str, bool], list[str], int]:
@@ -64,8 +93,8 @@ def read_arm(path: Path, arm: str | None) -> tuple[str, dict[str, bool], list[st
     return name, {part: bool(row[0]) for part, row in d["rows"][name].items()}, list(d["sets"]), int(d["count"])
 
 
-def describe(sets: list[str], count: int, tmp: Path) -> dict[str, tuple[str, float, bool]]:
-    """``{part: (description, sharpest convex edge in degrees, thin features)}`` of the never-seen sets, rebuilt from
+def describe(sets: list[str], count: int, tmp: Path) -> dict[str, tuple[str, float, float | None]]:
+    """``{part: (description, sharpest convex edge in degrees, thickness ratio)}`` of the never-seen sets, rebuilt from
     their seeds (:func:`read_part`)."""
     out = {}
     for spec in sets:
@@ -78,16 +107,21 @@ def describe(sets: list[str], count: int, tmp: Path) -> dict[str, tuple[str, flo
     return out
 
 
-def split(meshed: dict[str, bool], info: dict[str, tuple[str, float, bool]],
+SPLITS = ("shape", "edge", "thin", "depth", "like")
+
+
+def split(meshed: dict[str, bool], info: dict[str, tuple[str, float, float | None]],
           out: dict[str, dict[str, list[int]]] | None = None) -> dict[str, dict[str, list[int]]]:
-    """``{"shape": {class: [meshed, parts]}, "edge": {bin: [meshed, parts]}, "thin": {bin: [meshed, parts]}}``,
-    added to ``out`` when given; a part
-    whose build is not found again (an OpenCASCADE build that differs between machines) is counted under
-    ``unknown``."""
-    out = {"shape": {}, "edge": {}, "thin": {}} if out is None else out
+    """``{split: {class: [meshed, parts]}}`` for every split of :data:`SPLITS` (shape, sharpest edge, thin
+    features, how thin, like the examples), added to ``out`` when given; a part whose build is not found again
+    (an OpenCASCADE build that differs between machines) is counted under ``unknown``."""
+    out = {k: {} for k in SPLITS} if out is None else out
     for part, ok in meshed.items():
-        desc, deg, thin = info.get(part, (None, None, None))
-        for key, cls in (("shape", shape_class(desc)), ("edge", edge_class(deg)), ("thin", thin_class(thin))):
+        known = part in info
+        desc, deg, ratio = info.get(part, (None, None, None))
+        classes = (shape_class(desc), edge_class(deg), thin_class(ratio) if known else None,
+                   depth_class(ratio) if known else None, like_class(deg, ratio))
+        for key, cls in zip(SPLITS, classes):
             cell = out[key].setdefault(cls or "unknown", [0, 0])
             cell[0] += int(ok)
             cell[1] += 1
@@ -101,17 +135,20 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, default=ROOT / "benchmarks/results/unseen_split.json")
     args = ap.parse_args(argv)
 
-    per_file, total = {}, {"shape": {}, "edge": {}, "thin": {}}
+    per_file, total = {}, {k: {} for k in SPLITS}
     with tempfile.TemporaryDirectory() as tmp:
         for f in args.results:
             arm, meshed, sets, count = read_arm(f, args.arm)
             info = describe(sets, count, Path(tmp) / f.stem)
             per_file[f.stem] = {"arm": arm, "sets": sets, "meshed": sum(meshed.values()), "parts": len(meshed),
                                 "split": split(meshed, info),
-                                "parts_missed": {p: info.get(p, (None,))[0] for p, ok in meshed.items() if not ok}}
+                                "parts_missed": {p: info.get(p, (None,))[0] for p, ok in meshed.items() if not ok},
+                                "parts": {p: {"meshed": ok, "edge_deg": info.get(p, (None, None))[1],
+                                              "thin_ratio": info.get(p, (None, None, None))[2]}
+                                          for p, ok in meshed.items()}}
             split(meshed, info, total)
             print(f"{f.stem}: {per_file[f.stem]['meshed']} / {len(meshed)} (arm {arm})", flush=True)
-    for key, order in (("shape", SHAPES), ("edge", EDGE_BINS), ("thin", THIN_BINS)):
+    for key, order in zip(SPLITS, (SHAPES, EDGE_BINS, THIN_BINS, DEPTH_BINS, LIKE_BINS)):
         classes = [c for c in (*order, "unknown") if c in total[key]]
         print(f"\n{'by ' + key:<44}" + "".join(f"{c[:22]:>24}" for c in classes))
         for name, r in per_file.items():
