@@ -309,7 +309,8 @@ def knife_edge_deg(path: Path) -> float:
 
 def _build_step(path: Path, seed: int, k: int, family: str) -> None:
     """Build part ``k`` of ``seed`` and write it to ``path``, its description beside it (``.txt``); run in a
-    child process by :func:`make_parts`."""
+    child process by :func:`make_parts`.  A build that OpenCASCADE refuses (a fillet that splits the solid, ...)
+    exits with status 1 and one line on stderr, not a traceback: :func:`make_parts` skips that draw."""
     from polycubenet.io import gmsh_session, quiet_stdout
 
     with gmsh_session() as gmsh:
@@ -318,6 +319,9 @@ def _build_step(path: Path, seed: int, k: int, family: str) -> None:
             desc = build_part(gmsh.model.occ, np.random.default_rng([seed, k]), family)
             with quiet_stdout():
                 gmsh.write(str(path))
+        except Exception as exc:  # noqa: BLE001 - any refused build: this draw is skipped
+            print(f"{path.stem}: build refused, skipped ({type(exc).__name__}: {exc})", file=sys.stderr)
+            raise SystemExit(1) from None
         finally:
             gmsh.model.remove()
     path.with_suffix(".txt").write_text(desc)
