@@ -46,10 +46,9 @@ THIN_LIKE = 0.15
 LIKE_BINS = ("like the examples (edges <= 130 deg, nothing under 0.15 hex)", "knife edge or features under 0.15 hex")
 
 
-def thin_class(ratio: float | None | bool) -> str | None:
-    """The :data:`THIN_BINS` bin of a part's thickness ratio (:func:`read_part`; ``False`` or None: no thin
-    feature; a part not known has no entry)."""
-    return THIN_BINS[int(ratio is not None and ratio is not False)]
+def thin_class(ratio: float | None) -> str:
+    """The :data:`THIN_BINS` bin of a part's thickness ratio (:func:`read_part`; None: no thin feature)."""
+    return THIN_BINS[int(ratio is not None)]
 
 
 def depth_class(ratio: float | None) -> str:
@@ -65,7 +64,7 @@ def like_class(deg: float | None, ratio: float | None) -> str | None:
     (None when the edge is not known)."""
     if deg is None:
         return None
-    return LIKE_BINS[0] if deg <= 130 and (ratio is None or ratio >= THIN_LIKE) else LIKE_BINS[1]
+    return LIKE_BINS[0] if edge_class(deg) == EDGE_BINS[0] and (ratio is None or ratio >= THIN_LIKE) else LIKE_BINS[1]
 
 
 def read_part(path: Path) -> tuple[float, float | None]:
@@ -143,8 +142,8 @@ def main(argv=None) -> int:
             per_file[f.stem] = {"arm": arm, "sets": sets, "meshed": sum(meshed.values()), "parts": len(meshed),
                                 "split": split(meshed, info),
                                 "parts_missed": {p: info.get(p, (None,))[0] for p, ok in meshed.items() if not ok},
-                                "parts": {p: {"meshed": ok, "edge_deg": info.get(p, (None, None))[1],
-                                              "thin_ratio": info.get(p, (None, None, None))[2]}
+                                "parts": {p: dict(zip(("meshed", "edge_deg", "thin_ratio"),
+                                                      (ok, *info.get(p, (None, None, None))[1:])))
                                           for p, ok in meshed.items()}}
             split(meshed, info, total)
             print(f"{f.stem}: {per_file[f.stem]['meshed']} / {len(meshed)} (arm {arm})", flush=True)

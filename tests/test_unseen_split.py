@@ -12,8 +12,8 @@ import unseen_split  # noqa: E402
 
 
 def test_read_part_gives_the_thinnest_features_thickness_over_the_hex_edge(tmp_path):
-    """A 60 x 60 x 20 block with a 60 x 60 x 0.6 fin on top: volume 74 160, so the 3000-hex edge is
-    (74160 / 3000)^(1/3) = 2.91 and the fin's 0.6 is 0.206 of it; the plain block has no thin feature."""
+    """A 60 x 60 x 20 block with a fin 0.6 thick and 20 tall along one side of its top: the 3000-hex edge is
+    (73 440 / 3000)^(1/3) = 2.90, so the fin's 0.6 is 0.21 of it; the plain block has no thin feature."""
     import trimesh
 
     block = trimesh.creation.box(bounds=[[0, 0, 0], [60, 60, 20]])
