@@ -36,14 +36,18 @@ from polycubenet.atomic import write_json  # noqa: E402
 #: the hexes of a learned_meshes.py mesh (unseen_parts.mesh_learned's target_hexes)
 HEXES = 3000
 THIN_BINS = ("no wall or gap thinner than a hex", "walls or gaps thinner than a hex")
-#: the thinnest feature's median thickness over the hex edge, binned (the first: none thinner than a hex)
-DEPTH_BINS = ("none thinner than a hex", "0.5-1 hex", "0.3-0.5 hex", "0.15-0.3 hex", "under 0.15 hex")
 #: a part like the examples has no convex edge sharper than 130 degrees (every example's is 90-111) and no wall or
 #: gap thinner than this fraction of a hex.  Session 79 chose the fraction on the fresh sets of sessions 73-79
 #: (the knife-edge-free parts' misses all had walls under 0.15 of a hex, none of their meshed parts did) and
 #: then read it on the session 66-72 files, which it had not seen (MODEL_CARD.md, "Session 79")
 THIN_LIKE = 0.15
-LIKE_BINS = ("like the examples (edges <= 130 deg, nothing under 0.15 hex)", "knife edge or features under 0.15 hex")
+LIKE_BINS = (f"like the examples (edges <= 130 deg, nothing under {THIN_LIKE:g} hex)",
+             f"knife edge or features under {THIN_LIKE:g} hex")
+#: the thinnest feature's median thickness over the hex edge, binned: the lower bound of each bin after the first
+#: (none thinner than a hex), the last bin open below
+DEPTH_FLOORS = (0.5, 0.3, THIN_LIKE)
+DEPTH_BINS = ("none thinner than a hex", *(f"{lo:g}-{hi:g} hex" for lo, hi in zip(DEPTH_FLOORS, (1, *DEPTH_FLOORS))),
+              f"under {DEPTH_FLOORS[-1]:g} hex")
 
 
 def thin_class(ratio: float | None) -> str:
@@ -55,8 +59,7 @@ def depth_class(ratio: float | None) -> str:
     """The :data:`DEPTH_BINS` bin of a part's thickness ratio (None: nothing thinner than a hex)."""
     if ratio is None:
         return DEPTH_BINS[0]
-    return DEPTH_BINS[1] if ratio >= 0.5 else DEPTH_BINS[2] if ratio >= 0.3 else \
-        DEPTH_BINS[3] if ratio >= THIN_LIKE else DEPTH_BINS[4]
+    return DEPTH_BINS[1 + sum(ratio < lo for lo in DEPTH_FLOORS)]
 
 
 def like_class(deg: float | None, ratio: float | None) -> str | None:
