@@ -31,7 +31,10 @@ so ``--misses-only`` reads its gains; the ``part str.`` column counts the meshes
 
 ``--sheets`` gives each arm ``ExtractConfig.sheet_bandwidths`` (``on``: the default, ``off``: None, close planes
 that face opposite ways merged as before session 70); it can lose parts as well as gain them, so compare it on
-whole sets.  ``--only NAME ...`` keeps only the named parts of the sets (e.g. an earlier run's misses).
+whole sets.  ``--strips`` gives each arm the realisation's thin-strip rule (``on``: a chart under the minimum area
+that borders both faces of another axis is kept, and close planes facing opposite ways are not merged:
+``ClassicalConfig.keep_strips``, ``RealiseConfig.keep_sheets``; ``off``: both off; session 81); compare it on whole
+sets too.  ``--only NAME ...`` keeps only the named parts of the sets (e.g. an earlier run's misses).
 """
 
 from __future__ import annotations
@@ -48,39 +51,44 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
-def _job(args: tuple[int, str, str, int, tuple | None, int | None, bool | None, bool | None]) -> tuple[int, str, list]:
-    arm, checkpoint, path, steps, draws, mend_moves, own, sheets = args
+def _job(args: tuple[int, str, str, int, tuple | None, int | None, bool | None, bool | None, bool | None]
+         ) -> tuple[int, str, list]:
+    arm, checkpoint, path, steps, draws, mend_moves, own, sheets, strips = args
     import torch
 
     torch.set_num_threads(1)
     from unseen_parts import mesh_learned
 
     ((name, row),) = mesh_learned([Path(path)], checkpoint, steps, draws=draws,
-                                     mend_moves=mend_moves, own_structure=own, sheets=sheets).items()
+                                     mend_moves=mend_moves, own_structure=own, sheets=sheets,
+                                     strips=strips).items()
     return arm, name, list(row)
 
 
 def compare(checkpoints: list[str], parts: list[Path], workers: int = 1,
             draws: list[tuple | None] | None = None, mends: list[int | None] | None = None,
             misses_only: bool = False, owns: list[bool | None] | None = None,
-            sheets: list[bool | None] | None = None) -> list[dict[str, list]]:
+            sheets: list[bool | None] | None = None,
+            strips: list[bool | None] | None = None) -> list[dict[str, list]]:
     """Per arm (a checkpoint, with its table of further draws from ``draws``: None for the policy's) part
     name -> :func:`unseen_parts.mesh_learned`'s row, every checkpoint at its own default steps.  With
     ``misses_only`` the arms after the first run only on the parts the first did not mesh, and take the first's
     row (marked ``"baseline"`` at its end) for the others: for an arm that can only add a last resort to what
     the first does (``--mend-moves``, ``--own-structure``), not for another checkpoint.  ``owns``: each arm's
     ``RealiseConfig.own_structure`` (None: the config's); ``sheets``: each arm's opposite-faces rule
-    (``ExtractConfig.sheet_bandwidths``: None the config's, False off)."""
+    (``ExtractConfig.sheet_bandwidths``: None the config's, False off); ``strips``: each arm's thin-strip rule of
+    the realisation (``ClassicalConfig.keep_strips`` and ``RealiseConfig.keep_sheets``; None the configs')."""
     from polycubenet.inference import resolve_steps
 
     draws = draws or [None] * len(checkpoints)
     mends = mends or [None] * len(checkpoints)
     owns = owns or [None] * len(checkpoints)
     sheets = sheets or [None] * len(checkpoints)
+    strips = strips or [None] * len(checkpoints)
 
     def jobs(arms, which):
         return [(i, checkpoints[i], str(p), int(resolve_steps(None, "cpu", checkpoints[i])[1]), draws[i], mends[i],
-                 owns[i], sheets[i])
+                 owns[i], sheets[i], strips[i])
                 for i in arms for p in which]
 
     out: list[dict[str, list]] = [{} for _ in checkpoints]
@@ -107,7 +115,8 @@ def compare(checkpoints: list[str], parts: list[Path], workers: int = 1,
 
 def summary(names: list[str], checkpoints: list[str], result: list[dict[str, list]],
             draws: list[str] | None = None, mends: list[int | None] | None = None,
-            owns: list[bool | None] | None = None, sheets: list[bool | None] | None = None) -> list[dict]:
+            owns: list[bool | None] | None = None, sheets: list[bool | None] | None = None,
+            strips: list[bool | None] | None = None) -> list[dict]:
     """One row per arm: meshed count (and how many of them on the part's own structure, not the learned one:
     :func:`unseen_parts.map_name`), gained / lost parts against the first, seconds."""
     base = {k for k, v in result[0].items() if v[0]}
@@ -118,6 +127,7 @@ def summary(names: list[str], checkpoints: list[str], result: list[dict[str, lis
                      "mend_moves": (mends or [None] * len(names))[i],
                      "own_structure": (owns or [None] * len(names))[i],
                      "sheets": (sheets or [None] * len(names))[i],
+                     "strips": (strips or [None] * len(names))[i],
                      "meshed": len(ok), "parts": len(result[i]),
                      "part_structure": sum(1 for k in ok if result[i][k][6] == "exact, part's structure"),
                      "gained": sorted(ok - base), "lost": sorted(base - ok),
@@ -145,6 +155,8 @@ def main(argv=None) -> int:
                     help="RealiseConfig.own_structure per checkpoint (see above)")
     ap.add_argument("--sheets", nargs="+", default=None, choices=["on", "off", "default"],
                     help="ExtractConfig.sheet_bandwidths per checkpoint: on (default) or off (None; see above)")
+    ap.add_argument("--strips", nargs="+", default=None, choices=["on", "off", "default"],
+                    help="the realisation's thin-strip rule per checkpoint (see above)")
     ap.add_argument("--only", nargs="+", default=None, help="only these parts of the sets (names without .step)")
     ap.add_argument("--misses-only", action="store_true",
                     help="the arms after the first only on the parts the first did not mesh (see compare)")
@@ -171,6 +183,9 @@ def main(argv=None) -> int:
     if args.sheets is not None and len(args.sheets) != len(args.checkpoints):
         ap.error("--sheets needs one value per checkpoint")
     sheets = [None if o == "default" else o == "on" for o in args.sheets] if args.sheets else None
+    if args.strips is not None and len(args.strips) != len(args.checkpoints):
+        ap.error("--strips needs one value per checkpoint")
+    strips = [None if o == "default" else o == "on" for o in args.strips] if args.strips else None
     t0 = time.perf_counter()
     folder = Path(tempfile.mkdtemp(prefix="learned-meshes-"))
     parts = []
@@ -182,8 +197,8 @@ def main(argv=None) -> int:
         if missing:
             ap.error(f"--only names parts the sets do not make: {' '.join(sorted(missing))}")
         parts = [p for p in parts if p.stem in set(args.only)]
-    result = compare(args.checkpoints, parts, args.workers, tables, mends, args.misses_only, owns, sheets)
-    rows = summary(names, args.checkpoints, result, args.draws, mends, owns, sheets)
+    result = compare(args.checkpoints, parts, args.workers, tables, mends, args.misses_only, owns, sheets, strips)
+    rows = summary(names, args.checkpoints, result, args.draws, mends, owns, sheets, strips)
     print(f"\n{'arm':<16} {'meshed':>9} {'part str.':>9} {'seconds':>8}  gained / lost against {names[0]}")
     for r in rows:
         print(f"{r['name']:<16} {r['meshed']:>4} / {r['parts']:<3} {r['part_structure']:>9} {r['seconds']:>8}  "

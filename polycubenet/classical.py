@@ -101,6 +101,10 @@ class ClassicalConfig:
         Sweeps of iterated conditional modes.
     min_chart_area : float
         A chart smaller than this fraction of the total area is merged into a neighbour.
+    keep_strips : bool
+        A chart under ``min_chart_area`` that borders both labels of another axis (the rim of a thin
+        plate, the floor or end of a thin slot: a strip between two opposite faces) is kept: merged into
+        either neighbour it would put the two opposite faces on one plane and fill the slot or cut the plate.
     repair_rounds : int
         Rounds of merge / relabel / smooth.
     deform_iterations : int
@@ -158,6 +162,7 @@ class ClassicalConfig:
     sharp_discount: float = 4.0
     smooth_sweeps: int = 40
     min_chart_area: float = 0.002
+    keep_strips: bool = False
     repair_rounds: int = 30
     deform_iterations: int = 25
     flat_weight_start: float = 1.0
@@ -323,7 +328,11 @@ def repair_labels(
         for c in range(n_ch):
             nb = M.indices[M.indptr[c] : M.indptr[c + 1]]
             other_axes = {int(ch_label[d] // 2) for d in nb} - {int(ch_label[c] // 2)}
-            if ch_area[c] < config.min_chart_area * total or len(other_axes) < 2:
+            small = ch_area[c] < config.min_chart_area * total
+            if small and config.keep_strips:
+                nbl = {int(ch_label[d]) for d in nb}
+                small = not any(2 * a in nbl and 2 * a + 1 in nbl for a in other_axes)
+            if small or len(other_axes) < 2:
                 bad.append(c)
         # smallest first; a chart merges only if none of its neighbours merged this round
         bad.sort(key=lambda c: ch_area[c])

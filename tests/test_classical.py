@@ -91,6 +91,33 @@ def test_smoothing_removes_noise_and_repair_merges_small_charts():
     assert label_issues(V, F, fixed)["opposite_edges"] == 0
 
 
+def test_the_rim_of_a_thin_plate_is_kept_as_its_own_chart_only_with_keep_strips():
+    """A plate 1 % as thick as it is wide: each rim face is a strip under the minimum chart area that borders both
+    the top (+z) and the bottom (-z).  Merged into either, it puts top and bottom on one plane (the plate cut to
+    nothing); ``keep_strips`` keeps the rims' own labels, and still merges a small island that is not a strip."""
+    m = trimesh.creation.box(extents=[2.0, 2.0, 0.02]).subdivide().subdivide().subdivide()
+    V, F = np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
+    normals, areas = face_normals_areas(V, F)
+    edges, edge_faces = edge_topology(F)
+    truth = np.argmax(normals @ DIRECTIONS.T, axis=1)
+    rim = truth // 2 != 2
+    assert areas[rim].sum() / 4 < 0.01 * areas.sum()  # each rim face is under the minimum area below
+    w = np.ones(len(edges))
+    merged, _ = repair_labels(truth, V, F, normals, areas, edges, edge_faces, w, ClassicalConfig(min_chart_area=0.01),
+                              np.random.default_rng(0))
+    assert (merged[rim] // 2 == 2).any()  # a rim merged into the top or bottom
+    cfg = ClassicalConfig(min_chart_area=0.01, keep_strips=True)
+    kept, rep = repair_labels(truth, V, F, normals, areas, edges, edge_faces, w, cfg, np.random.default_rng(0))
+    assert (kept == truth).all() and rep["merged_charts"] == 0
+    # a small island of a wrong label inside the top is still merged
+    noisy = truth.copy()
+    top = np.flatnonzero(truth == 5)
+    centre = top[np.argmin(np.linalg.norm(V[F[top]].mean(1)[:, :2], axis=1))]
+    noisy[np.unique(edge_faces[(edge_faces == centre).any(1)].ravel())] = 1
+    fixed, rep = repair_labels(noisy, V, F, normals, areas, edges, edge_faces, w, cfg, np.random.default_rng(0))
+    assert rep["merged_charts"] >= 1 and (fixed == truth).all()
+
+
 def test_split_constrained_edges_leaves_no_collapsing_edge():
     m = trimesh.creation.box(extents=[1.0, 1.0, 1.0])  # 12 triangles: every edge joins two borders
     V, F = _canon(m)

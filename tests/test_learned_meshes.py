@@ -17,7 +17,7 @@ def _row(ok, seconds):
 def _fake_jobs(monkeypatch, module, outcome, field: str) -> list:
     """Replace ``module._job`` by ``outcome(job as a dict) -> row``; returns the (arm, part, job[field]) it saw."""
     seen = []
-    keys = ("arm", "checkpoint", "path", "steps", "draws", "mend_moves", "own", "sheets")
+    keys = ("arm", "checkpoint", "path", "steps", "draws", "mend_moves", "own", "sheets", "strips")
 
     def fake_job(job):
         d = dict(zip(keys, job, strict=True))
@@ -62,8 +62,8 @@ def test_misses_only_runs_the_later_arms_on_the_first_arms_misses(monkeypatch):
     ran = []
 
     def fake_job(job):
-        arm, ck, path, steps, draws, mend_moves, own, sheets = job
-        assert own is None
+        arm, ck, path, steps, draws, mend_moves, own, sheets, strips = job
+        assert own is None and strips is None
         name = Path(path).stem
         ran.append((arm, name, mend_moves))
         ok = name == "a" or (mend_moves == 3 and name == "c")
@@ -110,3 +110,16 @@ def test_the_sheets_arm_reaches_each_job_and_the_summary(monkeypatch):
     assert sorted(seen) == [(0, "a", None), (0, "b", None), (1, "a", False), (1, "b", False)]
     rows = summary(["on", "off"], ["m.pt", "m.pt"], out, sheets=[None, False])
     assert [(r["meshed"], r["sheets"]) for r in rows] == [(2, None), (1, False)] and rows[1]["lost"] == ["b"]
+
+
+def test_the_strips_arm_reaches_each_job_and_the_summary(monkeypatch):
+    import learned_meshes
+
+    seen = _fake_jobs(monkeypatch, learned_meshes,
+                      lambda job: _row(job["name"] == "a" or (job["strips"] is True and job["name"] == "b"), 1.0),
+                      "strips")
+    parts = [Path(f"/x/{n}.step") for n in "ab"]
+    out = learned_meshes.compare(["m.pt", "m.pt"], parts, strips=[False, True])
+    assert sorted(seen) == [(0, "a", False), (0, "b", False), (1, "a", True), (1, "b", True)]
+    rows = summary(["off", "on"], ["m.pt", "m.pt"], out, strips=[False, True])
+    assert [(r["meshed"], r["strips"]) for r in rows] == [(1, False), (2, True)] and rows[1]["gained"] == ["b"]
