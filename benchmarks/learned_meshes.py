@@ -32,8 +32,9 @@ so ``--misses-only`` reads its gains; the ``part str.`` column counts the meshes
 ``--sheets`` gives each arm ``ExtractConfig.sheet_bandwidths`` (``on``: the default, ``off``: None, close planes
 that face opposite ways merged as before session 70); it can lose parts as well as gain them, so compare it on
 whole sets.  ``--strips`` gives each arm the realisation's thin-strip rule (``on``: a chart under the minimum area
-that borders both faces of another axis is kept, and close planes facing opposite ways are not merged:
-``ClassicalConfig.keep_strips``, ``RealiseConfig.keep_sheets``; ``off``: both off; session 81); compare it on whole
+that borders both faces of another axis is kept, and close planes facing opposite ways across each other are not
+merged: ``ClassicalConfig.keep_strips``, ``RealiseConfig.keep_sheets``, the default since session 82; ``repair``:
+the first alone; ``off``: both off, the code before session 81); compare it on whole
 sets too.  ``--only NAME ...`` keeps only the named parts of the sets (e.g. an earlier run's misses).
 """
 
@@ -69,7 +70,7 @@ def compare(checkpoints: list[str], parts: list[Path], workers: int = 1,
             draws: list[tuple | None] | None = None, mends: list[int | None] | None = None,
             misses_only: bool = False, owns: list[bool | None] | None = None,
             sheets: list[bool | None] | None = None,
-            strips: list[bool | None] | None = None) -> list[dict[str, list]]:
+            strips: list[bool | str | None] | None = None) -> list[dict[str, list]]:
     """Per arm (a checkpoint, with its table of further draws from ``draws``: None for the policy's) part
     name -> :func:`unseen_parts.mesh_learned`'s row, every checkpoint at its own default steps.  With
     ``misses_only`` the arms after the first run only on the parts the first did not mesh, and take the first's
@@ -116,7 +117,7 @@ def compare(checkpoints: list[str], parts: list[Path], workers: int = 1,
 def summary(names: list[str], checkpoints: list[str], result: list[dict[str, list]],
             draws: list[str] | None = None, mends: list[int | None] | None = None,
             owns: list[bool | None] | None = None, sheets: list[bool | None] | None = None,
-            strips: list[bool | None] | None = None) -> list[dict]:
+            strips: list[bool | str | None] | None = None) -> list[dict]:
     """One row per arm: meshed count (and how many of them on the part's own structure, not the learned one:
     :func:`unseen_parts.map_name`), gained / lost parts against the first, seconds."""
     base = {k for k, v in result[0].items() if v[0]}
@@ -155,7 +156,7 @@ def main(argv=None) -> int:
                     help="RealiseConfig.own_structure per checkpoint (see above)")
     ap.add_argument("--sheets", nargs="+", default=None, choices=["on", "off", "default"],
                     help="ExtractConfig.sheet_bandwidths per checkpoint: on (default) or off (None; see above)")
-    ap.add_argument("--strips", nargs="+", default=None, choices=["on", "off", "default"],
+    ap.add_argument("--strips", nargs="+", default=None, choices=["on", "repair", "off", "default"],
                     help="the realisation's thin-strip rule per checkpoint (see above)")
     ap.add_argument("--only", nargs="+", default=None, help="only these parts of the sets (names without .step)")
     ap.add_argument("--misses-only", action="store_true",
@@ -185,7 +186,7 @@ def main(argv=None) -> int:
     sheets = [None if o == "default" else o == "on" for o in args.sheets] if args.sheets else None
     if args.strips is not None and len(args.strips) != len(args.checkpoints):
         ap.error("--strips needs one value per checkpoint")
-    strips = [None if o == "default" else o == "on" for o in args.strips] if args.strips else None
+    strips = [{"default": None, "on": True, "off": False, "repair": "repair"}[o] for o in args.strips] if args.strips else None
     t0 = time.perf_counter()
     folder = Path(tempfile.mkdtemp(prefix="learned-meshes-"))
     parts = []

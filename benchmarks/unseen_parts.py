@@ -439,7 +439,7 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
                  learned_maps: tuple[str, ...] | None = None, snap_planes: float | str | None = "default",
                  draws: tuple | None = None, first_anchors: str = "uniform", spot_mend: bool = True,
                  mend_moves: int | None = None, own_structure: bool | None = None,
-                 sheets: bool | None = None, strips: bool | None = None) -> dict:
+                 sheets: bool | None = None, strips: bool | str | None = None) -> dict:
     """Mesh through the learned source only (``--polycube learned``: the first draw at ``steps``,
     then the model's further draws, ``polycubenet.policy.LEARNED_DRAWS``; no classical fallback), as
     ``mesh_part`` does: name -> (valid, faithful and at least the quality bar ``min_sj``, SJ min,
@@ -456,7 +456,7 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
     a realisation keeps the learned structure or nothing, the code before session 65).  ``sheets``: False merges close
     planes that face opposite ways (``ExtractConfig.sheet_bandwidths=None``, the code before session 70; None: the
     config's).  ``strips``: the realisation's thin-strip rule (``ClassicalConfig.keep_strips`` and
-    ``RealiseConfig.keep_sheets`` together; None: the configs').  Each row ends with whether
+    ``RealiseConfig.keep_sheets`` together; ``"repair"``: ``keep_strips`` alone; None: the configs').  Each row ends with whether
     the kept mesh's spots were mended."""
     from polycubenet import policy
     from polycubenet.inference import ModelSource
@@ -487,8 +487,8 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
         cfg = dataclasses.replace(cfg, realise=dataclasses.replace(cfg.realise, own_structure=bool(own_structure)))
     if strips is not None and cfg.realise is not None:
         cfg = dataclasses.replace(cfg, realise=dataclasses.replace(
-            cfg.realise, keep_sheets=bool(strips),
-            classical=dataclasses.replace(cfg.realise.classical, keep_strips=bool(strips))))
+            cfg.realise, keep_sheets=strips is True,
+            classical=dataclasses.replace(cfg.realise.classical, keep_strips=strips in (True, "repair"))))
     if not spot_mend:
         cfg = dataclasses.replace(cfg, pullback=dataclasses.replace(cfg.pullback, capture_spots=False))
     for p in paths:

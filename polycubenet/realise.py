@@ -17,12 +17,13 @@ the part by 1-4 % of its diagonal although the structure is right.
 2. **Clean-up and flattening**, the classical construction's own steps
    (:mod:`polycubenet.classical`): Potts smoothing and chart repair with that cost, then the
    as-rigid-as-possible flattening onto the labels' planes (:func:`classical.flatten_labelled`).
-   With ``ClassicalConfig.keep_strips`` (off by default) the repair keeps a small chart that borders both faces
-   of another axis: the floor of a thin slot or the rim of a thin plate, which merged into a neighbour puts the
-   two opposite faces on one plane and fills the slot (session 81).
+   With ``ClassicalConfig.keep_strips`` (on in ``RealiseConfig.classical``) the repair keeps a small chart that
+   borders both faces of another axis: the floor of a thin slot or the rim of a thin plate, which merged into a
+   neighbour puts the two opposite faces on one plane and fills the slot (sessions 81-82).
 3. **The same structure, else the part's own.**  The solid that the flattened surface bounds
    (:func:`classical.flat_structure`, planes closer than :data:`MERGE_REL` of the learned
-   polycube's smallest cell merged; with ``RealiseConfig.keep_sheets`` not those that face opposite ways) is
+   polycube's smallest cell merged, but not two that face opposite ways across each other:
+   ``RealiseConfig.keep_sheets``) is
    compared with the learned polycube's minimal grid and
    occupancy, up to slabs thinner than :data:`THIN_SLAB` on either side (:func:`match_structure`:
    a learned slab collapsed where the part has one plane, a thin slab of the part put back where the
@@ -101,15 +102,18 @@ class RealiseConfig:
     thin_slab: float = THIN_SLAB
     planar_patches: bool = True
     own_structure: bool = True
-    #: the thin-strip rule, off by default (session 81): close planes facing opposite ways are not merged
-    #: (:func:`_merge_close`), and with ``classical=ClassicalConfig(keep_strips=True)`` the labelling's repair keeps the
-    #: small charts that border both faces of another axis.  Both on: on the session 76-81 fresh sets 5 of their 25
-    #: learned misses meshed and none of the 55 parts meshed through a realisation lost; examples 10 / 10
-    #: (``benchmarks/results/s81_strips.json``); but the synthetic genus-2 oracle pair of ``tests/test_pipeline.py``
-    #: is then realised with 3 thin slabs the flattening made and the polycube does not have: not on until that is
-    #: understood
-    keep_sheets: bool = False
-    classical: ClassicalConfig = ClassicalConfig()
+    #: the thin-strip rule (sessions 81-82): close planes facing opposite ways across each other (their faces
+    #: overlap seen along the axis) are not merged (:func:`_merge_close`: they bound a thin plate or slot), and the
+    #: labelling's repair keeps the small charts that border both faces of another axis
+    #: (``classical.keep_strips``).  Session 81 had the first half unguarded (every close opposite pair kept): the
+    #: synthetic genus-2 oracle pair of ``tests/test_pipeline.py`` was then realised with 3 thin slabs its
+    #: flattening staggered side by side.  Guarded, on the 84 parts of the session 74-81 fresh sets it can change:
+    #: 63 meshed against 55 with the rule off (+8, -0), one fewer than unguarded; examples 10 / 10
+    #: (``benchmarks/results/s82_strips.json``)
+    keep_sheets: bool = True
+    #: the realisation's labelling and flattening; the repair keeps thin strips here only (the classical chain's
+    #: own ``ClassicalConfig`` does not, unmeasured there)
+    classical: ClassicalConfig = ClassicalConfig(keep_strips=True)
 
 
 @dataclasses.dataclass
@@ -213,24 +217,46 @@ def _merge_close(Xp: np.ndarray, F: np.ndarray, labels: np.ndarray, tol: float,
     flattening left between two faces that the learned polycube has on one plane).  ``keep_sheets``: two
     neighbouring planes whose faces look opposite ways (one down the axis, the other up) stay apart however
     close: they bound a thin plate or a thin slot of the part, which merging would cut or fill
-    (``RealiseConfig.keep_sheets``); planes that face one way (a low step) merge as before."""
+    (``RealiseConfig.keep_sheets``), but only where the two faces lie across each other (their projections
+    along the axis overlap by more than ``tol`` both ways): opposite faces side by side are a flattening's
+    stagger, not a sheet, and merge; so do planes that face one way (a low step)."""
     X = np.array(Xp, dtype=np.float64, copy=True)
     for a in range(3):
-        on = labels // 2 == a
+        on = np.flatnonzero(labels // 2 == a)
         p, inv = np.unique(X[F[on, 0], a], return_inverse=True)
         if len(p) < 2:
             continue
         join = np.diff(p) <= tol
         if keep_sheets:
-            up = np.bincount(inv, weights=labels[on] % 2 == 1, minlength=len(p)) > 0
-            down = np.bincount(inv, weights=labels[on] % 2 == 0, minlength=len(p)) > 0
-            join &= ~((up[:-1] & down[1:]) | (down[:-1] & up[1:]))
+            up = labels[on] % 2 == 1
+            for i in np.flatnonzero(join):
+                lo, hi = on[inv == i], on[inv == i + 1]
+                if (_across(X, F, lo[up[inv == i]], hi[~up[inv == i + 1]], a, tol)
+                        or _across(X, F, lo[~up[inv == i]], hi[up[inv == i + 1]], a, tol)):
+                    join[i] = False
         group = np.concatenate([[0], np.cumsum(~join)])
         q = np.array([p[group == g].mean() for g in range(group[-1] + 1)])[group]
         if np.allclose(p, q):
             continue
         X[:, a] = np.interp(X[:, a], p, q)
     return X
+
+
+def _across(X: np.ndarray, F: np.ndarray, f: np.ndarray, g: np.ndarray, axis: int, margin: float,
+            chunk: int = 1 << 22) -> bool:
+    """Whether some face of ``f`` and some face of ``g`` overlap when seen along ``axis``: their bounding
+    rectangles in the other two coordinates share more than ``margin`` both ways."""
+    if len(f) == 0 or len(g) == 0:
+        return False
+    other = [b for b in range(3) if b != axis]
+    P, Q = X[F[f]][:, :, other], X[F[g]][:, :, other]
+    plo, phi, qlo, qhi = P.min(1), P.max(1), Q.min(1), Q.max(1)
+    step = max(1, chunk // len(g))
+    for s in range(0, len(f), step):
+        w = np.minimum(phi[s:s + step, None], qhi[None]) - np.maximum(plo[s:s + step, None], qlo[None])
+        if ((w > margin).all(-1)).any():
+            return True
+    return False
 
 
 def _collapses(a_planes: np.ndarray, b_planes: np.ndarray, thin: float, keep: int = 3) -> list[tuple[int, ...]]:

@@ -183,21 +183,23 @@ def test_a_thin_slab_of_the_learned_polycube_collapses_onto_the_part_plane_but_a
                 match_structure([xs, ys, zs], occ, learned)
 
 
-def test_close_planes_facing_opposite_ways_stay_apart_with_keep_sheets_and_a_low_step_still_merges():
-    """Four z-charts (one triangle each): the two faces of a thin slot (+z at 0.300, -z at 0.305) and a low step
-    (+z at 0.600 and 0.604).  With a merge distance of 0.01 both pairs merge; with ``keep_sheets`` the slot stays
-    open and the step still merges."""
+def test_close_planes_facing_opposite_ways_stay_apart_with_keep_sheets_only_across_each_other():
+    """Six z-charts (one triangle each): the two faces of a thin slot, one above the other (+z at 0.300, -z at
+    0.305), two opposite faces side by side (+z at 0.450, -z at 0.455: a flattening's stagger), and a low step
+    (+z at 0.600 and 0.604).  With a merge distance of 0.01 all three pairs merge; with ``keep_sheets`` the slot
+    stays open while the side-by-side pair and the step still merge."""
     tri = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
     X, F, labels = [], [], []
-    for k, (z, lab) in enumerate(((0.300, 5), (0.305, 4), (0.600, 5), (0.604, 5))):
-        X += [[x + 2.0 * k, y, z] for x, y in tri]
+    for k, (x0, z, lab) in enumerate(((0.0, 0.300, 5), (0.0, 0.305, 4), (2.0, 0.450, 5), (3.5, 0.455, 4),
+                                      (6.0, 0.600, 5), (8.0, 0.604, 5))):
+        X += [[x + x0, y, z] for x, y in tri]
         F.append([3 * k, 3 * k + 1, 3 * k + 2])
         labels.append(lab)
     X, F, labels = np.array(X), np.array(F), np.array(labels)
     merged = _merge_close(X, F, labels, 0.01)
-    assert np.unique(np.round(merged[:, 2], 6)).tolist() == [0.3025, 0.602]
+    assert np.unique(np.round(merged[:, 2], 6)).tolist() == [0.3025, 0.4525, 0.602]
     kept = _merge_close(X, F, labels, 0.01, keep_sheets=True)
-    assert np.unique(np.round(kept[:, 2], 6)).tolist() == [0.3, 0.305, 0.602]
+    assert np.unique(np.round(kept[:, 2], 6)).tolist() == [0.3, 0.305, 0.4525, 0.602]
 
 
 def test_a_thin_step_the_learned_polycube_drew_on_one_plane_is_put_back_but_a_thick_one_is_not():
