@@ -230,9 +230,10 @@ def _merge_close(Xp: np.ndarray, F: np.ndarray, labels: np.ndarray, tol: float,
         if keep_sheets:
             up = labels[on] % 2 == 1
             for i in np.flatnonzero(join):
-                lo, hi = on[inv == i], on[inv == i + 1]
-                if (_across(X, F, lo[up[inv == i]], hi[~up[inv == i + 1]], a, tol)
-                        or _across(X, F, lo[~up[inv == i]], hi[up[inv == i + 1]], a, tol)):
+                m0, m1 = inv == i, inv == i + 1
+                lo, hi, lo_up, hi_up = on[m0], on[m1], up[m0], up[m1]
+                if (_across(X, F, lo[lo_up], hi[~hi_up], a, tol)
+                        or _across(X, F, lo[~lo_up], hi[hi_up], a, tol)):
                     join[i] = False
         group = np.concatenate([[0], np.cumsum(~join)])
         q = np.array([p[group == g].mean() for g in range(group[-1] + 1)])[group]
