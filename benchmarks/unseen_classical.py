@@ -1,7 +1,7 @@
 """The classical polycube on the never-seen parts: is a part the learned path misses one that has a coarse polycube?
 
     python benchmarks/unseen_classical.py [--count 16] [--seed 53] [--family mixed] \\
-        [--json benchmarks/results/unseen_classical_mixed53.json]
+        [--json benchmarks/results/unseen_classical_mixed53.json] [--strips on|off|default]
     python benchmarks/unseen_classical.py --examples      # the 10 example parts, for the same comparison
 
 Builds the same parts as ``benchmarks/unseen_parts.py`` (same ``--count``, ``--seed`` and ``--family`` give the
@@ -11,6 +11,10 @@ the Hausdorff bar and at least the quality bar: the test ``unseen_parts.meets_ba
 --mesh`` applies to the learned source.  The row also says which polycube made the kept mesh: ``classical``
 (the flattening: a coarse polycube, what the learned polycube is compared with) or ``voxel``, ``voxel+K`` (a
 grid of cells that follows the part without a coarse structure).
+
+``--strips on|off`` sets the flattening's thin-strip rule (``ClassicalConfig.keep_strips``: a chart under the
+minimum area that borders both faces of another axis keeps its own label; off by default in the classical chain,
+on in the learned path's realisation since session 82), to compare the two on one set.
 
 ``benchmarks/unseen_losses.py`` reads these files beside the learned ones and splits the learned misses by what
 the classical chain gives for the same part.
@@ -36,14 +40,19 @@ def result_file(family: str, seed) -> Path:
     return ROOT / "benchmarks/results" / f"unseen_classical_{name}.json"
 
 
-def mesh_classical(paths: list[Path]) -> dict:
+def mesh_classical(paths: list[Path], keep_strips: bool | None = None) -> dict:
     """name -> (meets the bars, SJ min or the exception's name, the source whose mesh was kept, seconds,
-    Hausdorff / diagonal); ``--polycube classical`` at the benchmark's 3000 hexes."""
+    Hausdorff / diagonal); ``--polycube classical`` at the benchmark's 3000 hexes.  ``keep_strips`` sets the
+    flattening's ``ClassicalConfig.keep_strips`` (None: the config's default)."""
+    import dataclasses
+
     from unseen_parts import meets_bars
 
     from polycubenet.pipeline import PipelineConfig, mesh_part
 
     cfg = PipelineConfig(polycube="classical", target_hexes=3000)
+    if keep_strips is not None:
+        cfg = dataclasses.replace(cfg, classical=dataclasses.replace(cfg.classical, keep_strips=keep_strips))
     res = {}
     for p in paths:
         t0 = time.perf_counter()
@@ -73,6 +82,8 @@ def main(argv=None) -> int:
     ap.add_argument("--examples", action="store_true", help="mesh the 10 example parts (examples/parts) instead")
     ap.add_argument("--json", default=None, help="default: benchmarks/results/unseen_classical_<family><seed>.json "
                     "(with --examples: unseen_classical_examples.json)")
+    ap.add_argument("--strips", choices=("on", "off", "default"), default="default",
+                    help="the flattening's thin-strip rule (ClassicalConfig.keep_strips; default: the config's)")
     args = ap.parse_args(argv)
     if args.examples:
         args.family, args.seed = "examples", None
@@ -83,12 +94,13 @@ def main(argv=None) -> int:
         made = [(p, "example") for p in sorted((ROOT / "examples/parts").glob("*.step"))]
     else:
         made = make_parts(Path(tempfile.mkdtemp(prefix="unseen-parts-")), args.count, args.seed, args.family)
-    rows = mesh_classical([p for p, _ in made])
+    rows = mesh_classical([p for p, _ in made], {"on": True, "off": False}.get(args.strips))
     flat = sum(ok and src == "classical" for ok, _, src, _, _ in rows.values())
     any_ok = sum(bool(v[0]) for v in rows.values())
     print(f"\n{name}: the classical chain meets the bars on {any_ok}/{len(rows)} parts, "
           f"{flat} of them by the flattening (a coarse polycube)")
-    write_json(out, {"seed": args.seed, "family": args.family, "count": len(rows), "met": any_ok,
+    write_json(out, {"seed": args.seed, "family": args.family, "strips": args.strips, "count": len(rows),
+                     "met": any_ok,
                      "met_by_flattening": flat, "mesh": {k: list(v) for k, v in rows.items()},
                      "shapes": {p.stem: d for p, d in made}, "seconds": round(time.perf_counter() - t0, 1)})
     print(f"wrote {out}")
