@@ -11,6 +11,7 @@ pictures of every result under ``benchmarks/results/classical/<mode>/<model>/``.
     OMP_NUM_THREADS=1 python benchmarks/bench_classical.py [--hexgen DIR] [--parts DIR]
         [--modes classical auto] [--models mount1 rod ...] [--hexes 5000]
         [--sets hexgen examples hard] [--hard] [--hard-dir DIR] [--hard-seed N] [--part-timeout 600]
+        [--strips on|off|default] [--out FILE]
 
 ``--sets`` picks the model sets (default ``hexgen examples``); ``hard`` (or ``--hard``) adds the
 hard CAD models of ``benchmarks/hard_models.py``, generated into ``--hard-dir`` (default
@@ -21,6 +22,9 @@ instead the seeded variants of those models (other dimensions, never tuned on) i
 so they do not overwrite the fixed set's results (the flag adds the hard set to ``--sets``).  ``mesh_part`` has no
 time limit of its own, so ``--part-timeout S`` (> 0) runs each part in a subprocess killed
 after S seconds (status ``"timeout"``; a subprocess that dies is status ``"crashed"``).
+``--strips on|off`` sets the flattening's thin-strip rule
+(``ClassicalConfig.keep_strips``) to compare the chain with and without it (pictures then under
+``benchmarks/results/classical-strips-<on|off>/``; give each its own ``--out``).
 The summary prints one table per mode and set, with the median time and the counts of valid
 meshes, min SJ >= 0.2 and Hausdorff <= 1% of the diagonal.
 """
@@ -28,6 +32,7 @@ meshes, min SJ >= 0.2 and Hausdorff <= 1% of the diagonal.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import signal
@@ -49,6 +54,8 @@ HEXGEN = ROOT / ".." / "shared" / "benchmark" / "hexgen"
 PARTS = ROOT / "examples" / "parts"
 HARD = RESULTS / "hard_models"
 SETS = ("hexgen", "examples", "hard")
+#: ``--strips``: ``ClassicalConfig.keep_strips`` (None: the config's default)
+STRIPS = {"on": True, "off": False, "default": None}
 SJ_BAR = 0.2  # the project's quality bar on the minimum scaled Jacobian
 H_BAR = 0.01  # Hausdorff bar, relative to the bounding-box diagonal
 
@@ -72,8 +79,10 @@ def learned_source():
         return None, f"learned source unavailable: {type(exc).__name__}: {exc}"
 
 
-def run_one(path: Path, source, mode: str, hexes: int, pictures: Path) -> dict:
+def run_one(path: Path, source, mode: str, hexes: int, pictures: Path, keep_strips: bool | None = None) -> dict:
     cfg = PipelineConfig(polycube=mode, target_hexes=hexes)
+    if keep_strips is not None:  # --strips: the flattening's thin-strip rule (the classical chain's own config)
+        cfg = dataclasses.replace(cfg, classical=dataclasses.replace(cfg.classical, keep_strips=keep_strips))
     t0 = time.perf_counter()
     try:
         res = mesh_part(path, source, cfg)
@@ -98,12 +107,13 @@ def run_one(path: Path, source, mode: str, hexes: int, pictures: Path) -> dict:
     }
 
 
-def run_one_limited(path: Path, mode: str, hexes: int, pictures: Path, timeout: float) -> dict:
+def run_one_limited(path: Path, mode: str, hexes: int, pictures: Path, timeout: float,
+                    strips: str = "default") -> dict:
     """:func:`run_one` in a subprocess (this script with ``--one``) killed after ``timeout`` s."""
     with tempfile.TemporaryDirectory(prefix="bench-classical-") as tmp:
         res_json = Path(tmp) / "row.json"
         cmd = [sys.executable, str(Path(__file__).resolve()), "--one", str(path), "--one-json", str(res_json),
-               "--modes", mode, "--hexes", str(hexes), "--pictures", str(pictures)]
+               "--modes", mode, "--hexes", str(hexes), "--pictures", str(pictures), "--strips", strips]
         t0 = time.perf_counter()
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
         try:
@@ -168,6 +178,9 @@ def main(argv=None) -> int:
                     help="build the hard set's seeded variants (set name hard_seed<N>) instead of the fixed models")
     ap.add_argument("--part-timeout", type=float, default=0.0,
                     help="wall seconds per part, each part in a subprocess (default 0: in process, no limit)")
+    ap.add_argument("--strips", choices=("on", "off", "default"), default="default",
+                    help="the flattening's thin-strip rule, ClassicalConfig.keep_strips (default: the config's); "
+                         "with on / off the pictures go to benchmarks/results/classical-strips-<on|off>/")
     ap.add_argument("--one", type=Path, help=argparse.SUPPRESS)  # child of --part-timeout: one part
     ap.add_argument("--one-json", type=Path, help=argparse.SUPPRESS)
     ap.add_argument("--pictures", type=Path, help=argparse.SUPPRESS)
@@ -176,7 +189,7 @@ def main(argv=None) -> int:
     if args.one is not None:  # one part, row to --one-json (the parent applies the time limit)
         mode = args.modes[0]
         src = learned_source()[0] if mode in ("auto", "learned") else None
-        write_json(args.one_json, run_one(args.one, src, mode, args.hexes, args.pictures))
+        write_json(args.one_json, run_one(args.one, src, mode, args.hexes, args.pictures, STRIPS[args.strips]))
         return 0
 
     sets = list(dict.fromkeys(args.sets + (["hard"] if args.hard or args.hard_seed is not None else [])))
@@ -199,7 +212,7 @@ def main(argv=None) -> int:
         files = [(f, s) for f, s in files if f.stem in args.models]
     need_learned = any(m in ("auto", "learned") for m in args.modes)
     src, why_not = learned_source() if need_learned else (None, "not asked for (no auto / learned mode)")
-    out = {"hexes_target": args.hexes, "modes": {}, "auto_note": why_not,
+    out = {"hexes_target": args.hexes, "strips": args.strips, "modes": {}, "auto_note": why_not,
            "sets": [hard_set if s == "hard" else s for s in sets],
            "part_timeout": args.part_timeout or None}
     if args.out.exists():  # keep models measured by an earlier (partial) run
@@ -216,15 +229,15 @@ def main(argv=None) -> int:
         rows = out["modes"].setdefault(mode, {})
         if "measured" in rows:
             rows.clear()
-        pictures = RESULTS / "classical" / mode
+        pictures = RESULTS / ("classical" if args.strips == "default" else f"classical-strips-{args.strips}") / mode
         for f, set_name in files:
             key, pics = f.stem, pictures  # a variant set: its own keys and pictures, the fixed set's stay
             if set_name not in SETS:
                 key, pics = f"{set_name}/{f.stem}", pictures / set_name
             if args.part_timeout and args.part_timeout > 0:
-                r = run_one_limited(f, mode, args.hexes, pics, args.part_timeout)
+                r = run_one_limited(f, mode, args.hexes, pics, args.part_timeout, args.strips)
             else:
-                r = run_one(f, src, mode, args.hexes, pics)
+                r = run_one(f, src, mode, args.hexes, pics, STRIPS[args.strips])
             if set_name == "hexgen" and f.stem in reference:
                 r["reference"] = reference[f.stem]
                 ref = reference[f.stem]

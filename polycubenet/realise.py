@@ -111,9 +111,9 @@ class RealiseConfig:
     #: 63 meshed against 55 with the rule off (+8, -0), one fewer than unguarded; examples 10 / 10
     #: (``benchmarks/results/s82_strips.json``)
     keep_sheets: bool = True
-    #: the realisation's labelling and flattening; the repair keeps thin strips here only (the classical chain's
-    #: own ``ClassicalConfig`` does not, unmeasured there)
-    classical: ClassicalConfig = ClassicalConfig(keep_strips=True)
+    #: the realisation's labelling and flattening (its repair keeps thin strips: ``ClassicalConfig.keep_strips``,
+    #: on by default, in the classical chain too since session 84)
+    classical: ClassicalConfig = ClassicalConfig()
 
 
 @dataclasses.dataclass

@@ -103,8 +103,8 @@ def test_the_rim_of_a_thin_plate_is_kept_as_its_own_chart_only_with_keep_strips(
     rim = truth // 2 != 2
     assert areas[rim].sum() / 4 < 0.01 * areas.sum()  # each rim face is under the minimum area below
     w = np.ones(len(edges))
-    merged, _ = repair_labels(truth, V, F, normals, areas, edges, edge_faces, w, ClassicalConfig(min_chart_area=0.01),
-                              np.random.default_rng(0))
+    off = ClassicalConfig(min_chart_area=0.01, keep_strips=False)
+    merged, _ = repair_labels(truth, V, F, normals, areas, edges, edge_faces, w, off, np.random.default_rng(0))
     assert (merged[rim] // 2 == 2).any()  # a rim merged into the top or bottom
     cfg = ClassicalConfig(min_chart_area=0.01, keep_strips=True)
     kept, rep = repair_labels(truth, V, F, normals, areas, edges, edge_faces, w, cfg, np.random.default_rng(0))
