@@ -13,8 +13,8 @@ the Hausdorff bar and at least the quality bar: the test ``unseen_parts.meets_ba
 grid of cells that follows the part without a coarse structure).
 
 ``--strips on|off`` sets the flattening's thin-strip rule (``ClassicalConfig.keep_strips``: a chart under the
-minimum area that borders both faces of another axis keeps its own label; off by default in the classical chain,
-on in the learned path's realisation since session 82), to compare the two on one set.
+minimum area that borders both faces of another axis keeps its own label; on by default since session 84, in the
+learned path's realisation since session 82), to compare the two on one set.
 
 ``benchmarks/unseen_losses.py`` reads these files beside the learned ones and splits the learned misses by what
 the classical chain gives for the same part.
