@@ -56,6 +56,13 @@ HARD = RESULTS / "hard_models"
 SETS = ("hexgen", "examples", "hard")
 #: ``--strips``: ``ClassicalConfig.keep_strips`` (None: the config's default)
 STRIPS = {"on": True, "off": False, "default": None}
+
+
+def with_strips(cfg: PipelineConfig, keep_strips: bool | None) -> PipelineConfig:
+    """``cfg`` with the flattening's thin-strip rule set (``ClassicalConfig.keep_strips``; None: unchanged)."""
+    if keep_strips is None:
+        return cfg
+    return dataclasses.replace(cfg, classical=dataclasses.replace(cfg.classical, keep_strips=keep_strips))
 SJ_BAR = 0.2  # the project's quality bar on the minimum scaled Jacobian
 H_BAR = 0.01  # Hausdorff bar, relative to the bounding-box diagonal
 
@@ -80,9 +87,7 @@ def learned_source():
 
 
 def run_one(path: Path, source, mode: str, hexes: int, pictures: Path, keep_strips: bool | None = None) -> dict:
-    cfg = PipelineConfig(polycube=mode, target_hexes=hexes)
-    if keep_strips is not None:  # --strips: the flattening's thin-strip rule (the classical chain's own config)
-        cfg = dataclasses.replace(cfg, classical=dataclasses.replace(cfg.classical, keep_strips=keep_strips))
+    cfg = with_strips(PipelineConfig(polycube=mode, target_hexes=hexes), keep_strips)
     t0 = time.perf_counter()
     try:
         res = mesh_part(path, source, cfg)

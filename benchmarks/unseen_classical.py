@@ -44,15 +44,12 @@ def mesh_classical(paths: list[Path], keep_strips: bool | None = None) -> dict:
     """name -> (meets the bars, SJ min or the exception's name, the source whose mesh was kept, seconds,
     Hausdorff / diagonal); ``--polycube classical`` at the benchmark's 3000 hexes.  ``keep_strips`` sets the
     flattening's ``ClassicalConfig.keep_strips`` (None: the config's default)."""
-    import dataclasses
-
+    from bench_classical import with_strips
     from unseen_parts import meets_bars
 
     from polycubenet.pipeline import PipelineConfig, mesh_part
 
-    cfg = PipelineConfig(polycube="classical", target_hexes=3000)
-    if keep_strips is not None:
-        cfg = dataclasses.replace(cfg, classical=dataclasses.replace(cfg.classical, keep_strips=keep_strips))
+    cfg = with_strips(PipelineConfig(polycube="classical", target_hexes=3000), keep_strips)
     res = {}
     for p in paths:
         t0 = time.perf_counter()
@@ -94,7 +91,9 @@ def main(argv=None) -> int:
         made = [(p, "example") for p in sorted((ROOT / "examples/parts").glob("*.step"))]
     else:
         made = make_parts(Path(tempfile.mkdtemp(prefix="unseen-parts-")), args.count, args.seed, args.family)
-    rows = mesh_classical([p for p, _ in made], {"on": True, "off": False}.get(args.strips))
+    from bench_classical import STRIPS
+
+    rows = mesh_classical([p for p, _ in made], STRIPS[args.strips])
     flat = sum(ok and src == "classical" for ok, _, src, _, _ in rows.values())
     any_ok = sum(bool(v[0]) for v in rows.values())
     print(f"\n{name}: the classical chain meets the bars on {any_ok}/{len(rows)} parts, "

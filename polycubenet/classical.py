@@ -108,9 +108,10 @@ class ClassicalConfig:
         On by default since session 84: in the realisation since session 82; in the classical chain,
         measured both ways on 76 never-seen parts (the classical chain alone, ``benchmarks/unseen_classical.py
         --strips``), 72 against 71 meet the bars and 65 against 59 by the flattening rather than a voxel
-        polycube, none lost, the examples unchanged; on HexGen and the hard models (``benchmarks/bench_classical.py --strips``) 23 of
-        23 either way, the 12-hole plate by the flattening where a voxel polycube was needed before (min SJ
-        0.30 -> 0.48), joint 0.22 -> 0.27, tube elbow 0.314 -> 0.306.
+        polycube, none lost, the examples unchanged; on HexGen and the hard models
+        (``benchmarks/bench_classical.py --strips``) 23 of 23 either way, the 12-hole plate by the flattening
+        where a voxel polycube was needed before (min SJ 0.30 -> 0.48), joint 0.22 -> 0.27, tube elbow
+        0.314 -> 0.306.
     repair_rounds : int
         Rounds of merge / relabel / smooth.
     deform_iterations : int
