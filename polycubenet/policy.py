@@ -44,9 +44,10 @@ The rules:
   has min SJ 0.187, the voxel polycube's 0.302).
 * **A learned draw's rest**: a learned draw's pull-back is its registration map's mesh first; the rest (the exact
   realisation, the refined map, the mend, the denser pull-back) runs at once when that mesh is a near miss
-  (:func:`near_miss`) or no later draw follows, otherwise after the later draws' own maps, the waiting draws in
-  order before the classical chain (:func:`defers`): a draw far off mostly has the wrong structure, and the next
-  draw's map is cheaper than its realisation.
+  (:func:`near_miss`) or no later draw follows, otherwise after the later draws' own maps (:func:`defers`): a draw
+  far off mostly has the wrong structure, and the next draw's map is cheaper than its realisation.  Of the waiting
+  draws only :data:`FAR_RESTS` finish before the classical chain, the best mesh so far first (:func:`mesh_rank`);
+  the others are left with their maps' meshes.
 * **The kept mesh**: the first valid, faithful one that ends the chain, unless an earlier
   candidate ranks higher (:func:`mesh_rank`: valid first, then faithful, then not under the
   quality bar, then the higher minimum scaled Jacobian, or among meshes off the part the one
@@ -435,6 +436,19 @@ def defers(quality: dict, later: list[str]) -> bool:
     return not near_miss(quality) and any(refinement(s)[0] == "learned" for s in later)
 
 
+#: how many waiting learned draws (far off the part: :func:`defers`) finish their rest before the next kind of
+#: source, the best mesh so far first (:func:`mesh_rank`); the others are left with their maps' meshes.  Session 86,
+#: every draw's units timed on today's code and the orders replayed (``benchmarks/learned_order.py --replay``): a far
+#: draw's rest cost 3-107 s (median 15) and ended the chain in 52 of 101; where several ran on a part no draw
+#: meshed they mostly ended equally far off (blocks_1132_000: six rests, 400 s, each 4.79 % off: a wall thinner than
+#: the hexes).  Learned seconds with every waiting rest / the closest one only: 2359 / 1653 on 19 never-seen parts
+#: of sessions 83-85 (the rule chosen there; 12 meshed either way), 1056 / 833 on a check set recorded after (the
+#: examples, machined 1141, mixed 1143: 22 parts, 19 meshed either way); with none (only near misses and the last
+#: draw finish) 1433 and 632, two parts lost (``benchmarks/results/s86_learned_order_{fresh,check}.json``).
+#: None: every waiting draw finishes, in draw order
+FAR_RESTS: int | None = 1
+
+
 def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt],
               min_sj: float | None = None) -> Outcome:
     """Try ``sources`` in order with the policy of this module (see the module docstring).
@@ -446,8 +460,9 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
     A learned draw's attempt may leave the rest of its pull-back for later (:attr:`Attempt.rest`): when its
     mesh so far does not end the chain, the rest runs at once after a near miss (:func:`near_miss`) and when no
     later learned draw follows; otherwise it waits until every later draw's own mesh so far is in, the waiting
-    ones then in draw order, before the next kind of source (:func:`defers`); a draw still waiting when a later
-    mesh ends the chain is left with its mesh so far, as a candidate, its reason and seconds reported.
+    ones then, :data:`FAR_RESTS` of them, best mesh so far first, before the next kind of source (:func:`defers`);
+    a draw still waiting when a later mesh ends the chain, or beyond :data:`FAR_RESTS`, is left with its mesh so
+    far, as a candidate, its reason and seconds reported.
     An error that :func:`leaves_source` does not cover is raised as it is, with
     ``exc.stage`` and ``exc.source`` set, after ``exc.fallback_reason`` records the sources
     left before it.
@@ -487,7 +502,7 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
             failed(att.source, "pullback", exc, att.seconds)
             return None
 
-    def settle(att: Attempt, last: bool) -> bool:
+    def settle(att: Attempt, last: bool, note: str = "") -> bool:
         """Take a finished attempt in; True when it ends the chain."""
         nonlocal chosen
         attempts.append(att)
@@ -502,15 +517,21 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
             why = unfaithful_reason(label, att.quality)
         else:
             why = below_bar_reason(label, att.quality, min_sj)
-        reasons.append(f"pullback: {why}")
+        reasons.append(f"pullback: {why}{note}")
         reject(att.seconds)
         return False
 
     def run_waiting() -> bool:
-        while waiting:
+        waiting.sort(key=lambda a: mesh_rank(a.quality, min_sj), reverse=True)  # stable: ties in draw order
+        runs = len(waiting) if FAR_RESTS is None else FAR_RESTS
+        while waiting and runs > 0:
+            runs -= 1
             att = finished(waiting.pop(0))
             if att is not None and settle(att, last=False):
                 return True
+        while waiting:  # beyond FAR_RESTS: left with its mesh so far, a candidate
+            settle(waiting.pop(0), last=False,
+                   note=f" (its realisation not tried: only the closest {FAR_RESTS} far draw(s) finish)")
         return False
 
     meshed: set = set()  # the sources that gave a mesh

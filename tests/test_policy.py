@@ -354,9 +354,11 @@ def test_a_far_miss_waits_for_the_next_draws_and_a_near_miss_finishes_at_once():
     assert out.chosen.seconds["pullback"] == 5.0 and out.rejected_seconds == {}
 
 
-def test_the_waiting_rests_run_in_draw_order_after_the_last_draw_and_before_the_classical_chain():
+def test_the_waiting_rests_run_after_the_last_draw_and_before_the_classical_chain(monkeypatch):
     draws = ["learned", "learned+1", "learned+2", "classical"]
-    # every map far off; the last draw has no later draw to wait for: its rest at once, then the waiting ones
+    # every waiting rest finishing (FAR_RESTS None): the last draw has no later draw to wait for: its rest at once,
+    # then the waiting ones in draw order
+    monkeypatch.setattr(policy, "FAR_RESTS", None)
     attempt, calls = _two_phase({"learned": (FAR, FAR), "learned+1": (FAR, GOOD), "learned+2": (FAR, FAR),
                                  "classical": GOOD})
     out = run_chain(draws, attempt, min_sj=0.2)
@@ -373,6 +375,39 @@ def test_the_waiting_rests_run_in_draw_order_after_the_last_draw_and_before_the_
     out = run_chain(["learned", "learned+1"], attempt, min_sj=0.2)
     assert calls == ["learned", "learned+1", "learned+1:rest", "learned:rest"]
     assert out.chosen.payload == "learned:rest"
+
+
+FARTHER = {"valid": True, "sj_min": 0.3, "hausdorff": 0.048}  # blocks_1132_000's maps, 4.8 % off
+BROKEN = {"valid": False, "sj_min": -0.4, "hausdorff": 0.02}
+
+
+def test_only_the_closest_waiting_draws_finish_and_the_others_say_so(monkeypatch):
+    monkeypatch.setattr(policy, "FAR_RESTS", 1)
+    draws = ["learned", "learned+1", "learned+2", "learned+3", "classical", "voxel"]
+    # the closest waiting draw (learned+1, 3.4 % off) finishes and ends the chain; the farther and the invalid
+    # one never run their rests
+    script = {"learned": (FARTHER, GOOD), "learned+1": (FAR, GOOD), "learned+2": (BROKEN, GOOD),
+              "learned+3": (FARTHER, FARTHER), "classical": GOOD, "voxel": GOOD}
+    attempt, calls = _two_phase(script)
+    out = run_chain(draws, attempt, min_sj=0.2)
+    assert calls == ["learned", "learned+1", "learned+2", "learned+3", "learned+3:rest", "learned+1:rest"]
+    assert out.chosen.payload == "learned+1:rest"
+    # none ends it: the classical chain runs once after the one finished rest; the others are candidates whose
+    # reasons say their realisation was not tried, and no rest runs again before the voxel polycube
+    script.update({"learned+1": (FAR, FAR), "classical": FARTHER, "voxel": GOOD})
+    attempt, calls = _two_phase(script)
+    out = run_chain(draws, attempt, min_sj=0.2)
+    assert calls == ["learned", "learned+1", "learned+2", "learned+3", "learned+3:rest", "learned+1:rest",
+                     "classical", "voxel"]
+    assert out.chosen.payload == "voxel"
+    left = [r for r in out.reasons if "not tried" in r]
+    assert len(left) == 2 and "learned polycube's hex mesh is valid but 4.80 %" in left[0]
+    assert "learned (draw 3" in left[1] and "is not valid" in left[1]
+    # the learned draws alone: the same one finishes, the others' maps' meshes are kept as candidates
+    attempt, calls = _two_phase({k: v for k, v in script.items() if k.startswith("learned")})
+    out = run_chain(draws[:4], attempt, min_sj=0.2)
+    assert calls == ["learned", "learned+1", "learned+2", "learned+3", "learned+3:rest", "learned+1:rest"]
+    assert out.chosen.payload == "learned+1:rest"  # FAR's own rest, the closest mesh
 
 
 def test_a_rest_that_fails_leaves_the_draw_as_any_error_of_its_attempt_does():
