@@ -529,9 +529,10 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
             att = finished(waiting.pop(0))
             if att is not None and settle(att, last=False):
                 return True
+        note = (" (its realisation not tried: only the closest far draw finishes)" if FAR_RESTS == 1 else
+                f" (its realisation not tried: only the {FAR_RESTS} closest far draws finish)")
         while waiting:  # beyond FAR_RESTS: left with its mesh so far, a candidate
-            settle(waiting.pop(0), last=False,
-                   note=f" (its realisation not tried: only the closest {FAR_RESTS} far draw(s) finish)")
+            settle(waiting.pop(0), last=False, note=note)
         return False
 
     meshed: set = set()  # the sources that gave a mesh

@@ -403,6 +403,7 @@ def test_only_the_closest_waiting_draws_finish_and_the_others_say_so(monkeypatch
     left = [r for r in out.reasons if "not tried" in r]
     assert len(left) == 2 and "learned polycube's hex mesh is valid but 4.80 %" in left[0]
     assert "learned (draw 3" in left[1] and "is not valid" in left[1]
+    assert left[0].endswith("(its realisation not tried: only the closest far draw finishes)")
     # the learned draws alone: the same one finishes, the others' maps' meshes are kept as candidates
     attempt, calls = _two_phase({k: v for k, v in script.items() if k.startswith("learned")})
     out = run_chain(draws[:4], attempt, min_sj=0.2)
