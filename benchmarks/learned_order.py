@@ -143,21 +143,6 @@ def replay(draws: list[dict], order: str) -> tuple[float, str | None]:
     later: list[dict] = []
     rf = order.endswith("-rf")  # a near miss's rest with the refined map before the realisation
     order = order.removesuffix("-rf")
-    if order == "now-same":
-        spent, done = 0.0, []
-        for d in draws:
-            spent += d["pre"] + (d["a"] or 0.0)
-            if d["a"] is None:
-                continue
-            if d["a_end"]:
-                return spent, f"A {d['draw']}"
-            if _same_off(done):
-                continue
-            spent += d["b"]
-            done.append(d)
-            if d["b_end"]:
-                return spent, f"B {d['draw']}"
-        return spent, None
     policy = order in ("policy", "closest", "same") or (order.startswith("cap") and not order.startswith("capq"))
     done: list[dict] = []  # the finished rests
     for i, d in enumerate(draws):
@@ -168,7 +153,9 @@ def replay(draws: list[dict], order: str) -> tuple[float, str | None]:
         if d["a_end"]:
             return spent, f"A {d['draw']}"
         last = i == len(draws) - 1  # a part none of whose As ends the chain: every draw of the chain is recorded
-        if order == "now" or (order == "defer-far" and d["near"]) or (policy and (d["near"] or last)):
+        if order == "now-same" and _same_off(done):
+            continue  # this draw's B left: two finished ones ended equally far off
+        if order in ("now", "now-same") or (order == "defer-far" and d["near"]) or (policy and (d["near"] or last)):
             with_rf = rf and d["near"] and "b_rf" in d
             b, end = (d["b_rf"], d["b_rf_end"]) if with_rf else (d["b"], d["b_end"])
             spent += b
