@@ -522,7 +522,8 @@ def run_chain(sources: list[str], attempt: Callable[[str, StageTracker], Attempt
         return False
 
     def run_waiting() -> bool:
-        waiting.sort(key=lambda a: mesh_rank(a.quality, min_sj), reverse=True)  # stable: ties in draw order
+        if FAR_RESTS is not None:  # the best meshes so far first (a stable sort: ties in draw order)
+            waiting.sort(key=lambda a: mesh_rank(a.quality, min_sj), reverse=True)
         runs = len(waiting) if FAR_RESTS is None else FAR_RESTS
         while waiting and runs > 0:
             runs -= 1
