@@ -482,3 +482,36 @@ def test_the_second_labelling_is_tried_only_after_the_first_realised_the_structu
         mesh_pc.points, mesh_pc.hexes, meta={"valid": True, "sj_min": 0.1, "hausdorff": 0.001}))  # under the bar
     pull_back_learned(poly, _Map(lambda P: np.asarray(P, float)), V, F, cfg)
     assert tried == [True, False]
+
+
+def test_a_near_miss_map_mesh_opens_the_refined_map_even_when_a_farther_realised_mesh_outranks_it(slanted_l,
+                                                                                                   monkeypatch):
+    """The refined map is fitted after any near miss so far, not only when the best mesh is one: a realised mesh
+    far off the part but above the quality bar ranks above the registration's near miss under it, and the refined
+    map's mesh, faithful and above the bar, then ends the chain (never-seen mixed_1163_002, session 87)."""
+    import types
+
+    from polycubenet import pipeline, registration
+    from polycubenet.data import HexMesh
+    from polycubenet.pipeline import PipelineConfig, pull_back_learned
+
+    V, F, poly, _ = slanted_l
+    cfg = PipelineConfig(target_hexes=800, learned_maps=("registration", "exact", "refined"),
+                         pullback=PullbackConfig(capture_spots=False))
+    maps = iter([{"valid": True, "sj_min": 0.09, "hausdorff": 0.0105},  # the registration's: a near miss, under the bar
+                 {"valid": True, "sj_min": 0.24, "hausdorff": 0.0084}])  # the refined map's: ends the chain
+
+    def fake_pull_back(mesh_pc, to_part, *a, **k):
+        getattr(to_part, "map_points", to_part)(mesh_pc.points[:1])  # the refined map is fitted on its first use
+        return HexMesh(mesh_pc.points, mesh_pc.hexes, meta=dict(next(maps)))
+
+    monkeypatch.setattr(pipeline, "pull_back", fake_pull_back)
+    monkeypatch.setattr(pipeline, "learned_map", lambda Vc, F_, p, corr, rc, **kw: (types.SimpleNamespace(
+        polycube=p, map=types.SimpleNamespace(meta={"method": "fake", "structure": "part"})), None))
+    monkeypatch.setattr(pipeline, "_pull_back_classical", lambda mesh_pc, *a, **k: HexMesh(
+        mesh_pc.points, mesh_pc.hexes, meta={"valid": True, "sj_min": 0.30, "hausdorff": 0.045}))  # far off, above
+    fitted = []
+    monkeypatch.setattr(registration, "refine", lambda corr, part_points, **kw: fitted.append(1) or corr)
+    first, _ = pull_back_learned(poly, _Map(lambda P: np.asarray(P, float)), V, F, cfg, phase="map")
+    mesh, _ = pull_back_learned(poly, _Map(lambda P: np.asarray(P, float)), V, F, cfg, phase="rest", prior=first)
+    assert fitted == [1] and mesh.meta["map"].startswith("refined") and mesh.meta["hausdorff"] == 0.0084
