@@ -62,7 +62,8 @@ ORDERS = ("now", "defer", "defer-far", "now-rf", "defer-far-rf", "policy", "clos
 def record_part(path: Path, checkpoint: str, steps: int, rf: bool = True) -> list[dict]:
     """One dict per learned draw of ``path``: ``pre`` seconds (generation to registration and partition), ``extract``
     (None, or why the polycube was rejected), ``a`` / ``b`` seconds, ``a_end`` / ``b_end`` (the unit's mesh ends the
-    chain), ``near`` (A's mesh is a near miss); ``b`` None where it was not run."""
+    chain), ``near`` (A's mesh is a near miss), ``a_off`` / ``a_sj`` / ``a_valid`` (A's mesh), ``b_off`` / ``b_sj`` /
+    ``b_map`` (B's); ``b`` None where it was not run."""
     from polycubenet.errors import PolycubeError
     from polycubenet.frame import canonicalize
     from polycubenet.inference import ModelSource
@@ -100,7 +101,8 @@ def record_part(path: Path, checkpoint: str, steps: int, rf: bool = True) -> lis
         first, _ = pull_back_learned(poly, corr, Vc, F, c, phase="map", **kw)
         row["a"], row["a_end"], row["near"] = round(time.perf_counter() - t0, 2), ends_chain(first.meta, cfg.min_sj), \
             near_miss(first)
-        row["a_off"], row["a_valid"] = first.meta.get("hausdorff"), bool(first.meta.get("valid"))
+        row["a_off"], row["a_valid"], row["a_sj"] = first.meta.get("hausdorff"), bool(first.meta.get("valid")), \
+            first.meta.get("sj_min")
         if row["a_end"]:
             break
         t0 = time.perf_counter()
