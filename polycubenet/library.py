@@ -43,6 +43,7 @@ from .atomic import load_npz, save_npz, write_json, write_text
 from .data import HexMesh, Part, Polycube, PolycubeCloud, SurfaceSample
 from .errors import PolycubeError
 from .pipeline import OracleSource, PartResult, PipelineConfig, register_cloud
+from .threads import one_blas_thread
 from . import tol
 from .policy import (draw_anchors, draw_seed, draw_steps, draw_turn, extraction_config, faithful, refinement,
                      source_config, under_bar)
@@ -384,6 +385,7 @@ def source_extra(kind: str, part_path: str | os.PathLike, checkpoint: str | os.P
 # --------------------------------------------------------------------------- the stages
 
 
+@one_blas_thread
 def load_sample(path: str | os.PathLike, dest: str | os.PathLike, config: PipelineConfig, load_kw: dict | None = None) -> Path:
     """Load and validate the part, put it in its canonical frame, Poisson-disk sample it.
 
@@ -413,6 +415,7 @@ def read_loaded(path: str | os.PathLike):
     return part, sample, Transform.from_dict(meta["transform"]), meta
 
 
+@one_blas_thread
 def polycube_cloud(kind: str, part_path: str | os.PathLike, loaded: str | os.PathLike, dest: str | os.PathLike,
                    config: PipelineConfig, *, checkpoint: str | os.PathLike | None = None,
                    device: str | None = None, steps: int | None = None) -> Path:
@@ -440,6 +443,7 @@ def write_generated(generated: np.ndarray, dest: str | os.PathLike, meta: dict,
                          anchor_normals=an).save(dest)
 
 
+@one_blas_thread
 def cleanup_extract(cloud_path: str | os.PathLike, loaded: str | os.PathLike, dest: str | os.PathLike,
                     config: PipelineConfig) -> Path:
     """Outlier filter, then the explicit polycube (:func:`polycubenet.pipeline.cloud_polycube`:
@@ -489,6 +493,7 @@ def _extracted_polycube(arrays: dict, meta: dict) -> Polycube:
     return Polycube(arrays["xs"], arrays["ys"], arrays["zs"], arrays["occupancy"], meta=meta["polycube"])
 
 
+@one_blas_thread
 def register(extracted: str | os.PathLike, loaded: str | os.PathLike, dest: str | os.PathLike, config: PipelineConfig) -> Path:
     """Rigid + CPD registration of the cleaned cloud to the part sample (:func:`polycubenet.pipeline.register_cloud`)."""
     arrays, _ = _load_arrays(extracted)
@@ -500,6 +505,7 @@ def register(extracted: str | os.PathLike, loaded: str | os.PathLike, dest: str 
     return register_cloud(sample, P, N, config).save(dest)
 
 
+@one_blas_thread
 def partition_pullback(extracted: str | os.PathLike, corr: str | os.PathLike, loaded: str | os.PathLike,
                        dest: str | os.PathLike, config: PipelineConfig, phase: str = "all",
                        prior: str | os.PathLike | None = None) -> Path:
@@ -548,6 +554,7 @@ def pullback_quality(path: str | os.PathLike) -> dict:
     return out
 
 
+@one_blas_thread
 def report_export(hexc: str | os.PathLike, extracted: str | os.PathLike, loaded: str | os.PathLike,
                   out_dir: str | os.PathLike, formats=("vtu",), *, key: str | None = None, name: str | None = None) -> Path:
     """Mesh back to the part's own coordinates, quality report against the input surface,

@@ -78,6 +78,7 @@ from .realise import variants as realise_variants
 from .registration import align
 from .sampling import poisson_disk, uniform_sample
 from .structure import ExtractConfig, check_genus, extract
+from .threads import one_blas_thread
 from .voxel import VoxelConfig
 
 
@@ -317,6 +318,7 @@ class _Clock:
         return _Ctx()
 
 
+@one_blas_thread
 def mesh_surface(
     V: np.ndarray,
     F: np.ndarray,

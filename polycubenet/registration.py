@@ -54,6 +54,7 @@ from scipy.spatial.transform import Rotation
 
 from . import tol
 from .data import SurfaceSample, _NpzRecord
+from .threads import one_blas_thread
 from .sampling import interpolate
 
 #: default CPD kernel width (canonical frame, diagonal 1)
@@ -964,6 +965,7 @@ def _project_to_mesh(points: np.ndarray, V: np.ndarray, F: np.ndarray) -> tuple[
     return tri, bary
 
 
+@one_blas_thread
 def align(
     sample: SurfaceSample,
     cloud_points: np.ndarray,
