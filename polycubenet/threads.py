@@ -18,8 +18,10 @@ its clouds were identical at one and two threads.
 
 from __future__ import annotations
 
+import contextlib
 import functools
-from typing import Callable, TypeVar
+import threading
+from typing import Callable, Iterator, TypeVar
 
 from threadpoolctl import threadpool_limits
 
@@ -29,13 +31,40 @@ STAGE_THREADS = 1
 F = TypeVar("F", bound=Callable)
 
 
+_lock = threading.Lock()
+_depth = 0  # stages inside the hold, in every thread of this process (the pools are the process's, not a thread's)
+_limiter = None
+
+
+@contextlib.contextmanager
+def blas_held() -> Iterator[None]:
+    """The BLAS pools (numpy's and scipy's OpenBLAS) at :data:`STAGE_THREADS` threads while any stage of this
+    process is inside, restored when the last one leaves.  The pools belong to the process, and the thread runner
+    runs parts side by side.  A plain ``threadpool_limits`` per stage would put one part's stage back at the old
+    count when another part's stage finished first.  Seen here with OpenBLAS 0.3.30/0.3.31: when the last stage
+    to leave runs in another thread than the first one in, the old count does not come back for the first
+    thread. Its later products then run at one thread too, which changes no result of this library."""
+    global _depth, _limiter
+    with _lock:
+        if _depth == 0:
+            _limiter = threadpool_limits(limits=STAGE_THREADS, user_api="blas")
+        _depth += 1
+    try:
+        yield
+    finally:
+        with _lock:
+            _depth -= 1
+            if _depth == 0:
+                _limiter.restore_original_limits()
+                _limiter = None
+
+
 def one_blas_thread(fn: F) -> F:
-    """``fn`` run with the BLAS pools (numpy's and scipy's OpenBLAS) held at :data:`STAGE_THREADS`
-    threads and restored after it."""
+    """``fn`` run inside :func:`blas_held`."""
 
     @functools.wraps(fn)
     def held(*args, **kwargs):
-        with threadpool_limits(limits=STAGE_THREADS, user_api="blas"):
+        with blas_held():
             return fn(*args, **kwargs)
 
     return held

@@ -68,3 +68,41 @@ def test_the_pipeline_holds_blas_at_one_thread_inside_and_restores_it_after(l_bl
             mesh_surface(V, F, source, PipelineConfig(polycube="learned"), part_meta={"genus": 0})
         assert seen and all(set(s) == {1} for s in seen), seen
         assert set(_blas_threads()) == {2}
+
+
+def test_two_stages_side_by_side_keep_one_thread_until_the_last_leaves():
+    """Part A's stage ends while part B's runs in another thread (the thread runner): B's products stay
+    one-thread products.  A hold per stage would give the pools back to two threads when A left."""
+    import hashlib
+    import threading
+
+    import numpy as np
+
+    from polycubenet.threads import blas_held
+
+    rng = np.random.default_rng(0)
+    C, w = rng.random((4080, 64)), rng.random(4080)
+
+    def product() -> str:  # the registration's M-step product, whose sums depend on the thread count
+        return hashlib.md5((C.T @ (w[:, None] * C)).tobytes()).hexdigest()
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        one = product()
+    inside, a_left, seen = threading.Event(), threading.Event(), []
+
+    def b():
+        with blas_held():
+            inside.set()
+            a_left.wait(30)
+            seen.append(product())
+
+    with threadpool_limits(limits=2, user_api="blas"):
+        if product() == one:
+            pytest.skip("this OpenBLAS sums the product the same way with one and two threads")
+        t = threading.Thread(target=b)
+        with blas_held():
+            t.start()
+            assert inside.wait(30)
+        a_left.set()
+        t.join(30)
+    assert seen == [one]
