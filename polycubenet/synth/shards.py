@@ -302,12 +302,9 @@ def _make_record(task: tuple[int, int, ShardParams]) -> dict:
 
 
 def _init_worker() -> None:  # pragma: no cover - runs in child processes
-    try:
-        import threadpoolctl
+    import threadpoolctl  # a dependency since session 88 (polycubenet.threads)
 
-        threadpoolctl.threadpool_limits(1)
-    except ImportError:
-        pass
+    threadpoolctl.threadpool_limits(1)
 
 
 def write_dataset(
