@@ -558,7 +558,7 @@ def pullback_quality(path: str | os.PathLike) -> dict:
 def report_export(hexc: str | os.PathLike, extracted: str | os.PathLike, loaded: str | os.PathLike,
                   out_dir: str | os.PathLike, formats=("vtu",), *, key: str | None = None, name: str | None = None) -> Path:
     """Mesh back to the part's own coordinates, quality report against the input surface,
-    and the output files (``hex.<fmt>``, ``quality.json``/``.png``, ``preview.png``,
+    and the output files (``hex.<fmt>``, ``quality.json``/``.png``, ``preview.png``, ``deviation.png`` off the part,
     ``polycube.npz``, ``result.json`` last).  ``name`` names the part in ``result.json`` (default:
     the file name the loaded stage was made from; identical files share that stage).  Returns ``out_dir``."""
     from .quality import quality_report
@@ -721,7 +721,8 @@ def flagged_counts(summary: list[dict], min_sj: float | None) -> str:
 def write_report_html(out: str | os.PathLike, rows: list[dict], *, title: str = "PolycubeNet meshing report",
                       min_sj: float | None = None) -> Path:
     """``<out>/report.html``: counts, a table (status, polycube, quality, time, error) and the
-    pictures of every meshed part (relative links to ``<part>/preview.png``, ``quality.png``).  A part meshed
+    pictures of every meshed part (relative links to ``<part>/preview.png``, ``quality.png``, and ``deviation.png``
+    for a mesh off the part).  A part meshed
     valid but under the quality bar ``min_sj`` or off the part (:func:`flagged_counts`) is marked as a meshed part
     not valid is, and counted; each part's quality warnings (``quality.json``) head its section."""
     out = Path(out)
@@ -746,7 +747,7 @@ def write_report_html(out: str | os.PathLike, rows: list[dict], *, title: str = 
         if r["status"] != "meshed":
             continue
         d = r["name"]
-        pics = "".join(f"<img src='{esc(d)}/{p}' alt='{p}'>" for p in ("preview.png", "quality.png")
+        pics = "".join(f"<img src='{esc(d)}/{p}' alt='{p}'>" for p in ("preview.png", "quality.png", "deviation.png")
                        if (out / d / p).is_file())
         files = " ".join(f"<a href='{esc(d)}/{esc(f)}'>{esc(f)}</a>" for f in r.get("files", []))
         said = "".join(f"<li>{esc(w)}</li>" for w in ((r.get("quality") or {}).get("warnings") or []))

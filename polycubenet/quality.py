@@ -254,7 +254,8 @@ def _point_triangle_distance(query: np.ndarray, V: np.ndarray, F: np.ndarray) ->
     return d.numpy().astype(np.float64)
 
 
-def surface_distance(va, fa, vb, fb, *, n_samples: int = 200_000, seed: int = 0) -> dict[str, float]:
+def surface_distance(va, fa, vb, fb, *, n_samples: int = 200_000, seed: int = 0,
+                     far_above: float | None = None, far_keep: int = 5000) -> dict[str, float]:
     """Two-sided sampled distance between triangle surfaces A and B, relative to B's bbox diagonal.
 
     Each surface is sampled (all its vertices plus ``n_samples`` area-uniform random
@@ -273,13 +274,18 @@ def surface_distance(va, fa, vb, fb, *, n_samples: int = 200_000, seed: int = 0)
     n_samples : int, optional
         Random samples on each surface (in addition to the vertices).
     seed : int, optional
+    far_above : float, optional
+        Also return the samples farther than this (relative to the diagonal) from the
+        other surface: ``far_a`` / ``far_b`` (``(k, 3)``, in the input coordinates) and
+        ``far_a_dist`` / ``far_b_dist`` (``(k,)``, relative), the ``far_keep`` farthest of each.
 
     Returns
     -------
     dict
         ``a_to_b_max``, ``a_to_b_mean``, ``b_to_a_max``, ``b_to_a_mean``,
         ``hausdorff`` (max of both maxima), ``mean`` (average of both means), all
-        relative to the diagonal; ``diagonal`` (absolute); ``samples_a``, ``samples_b``.
+        relative to the diagonal; ``diagonal`` (absolute); ``samples_a``, ``samples_b``;
+        with ``far_above`` the far samples above.
     """
     va = np.asarray(va, dtype=np.float64)
     vb = np.asarray(vb, dtype=np.float64)
@@ -308,7 +314,48 @@ def surface_distance(va, fa, vb, fb, *, n_samples: int = 200_000, seed: int = 0)
     out["diagonal"] = diag
     out["samples_a"] = int(len(sa))
     out["samples_b"] = int(len(sb))
+    if far_above is not None:
+        for side, pts, dist in (("a", sa, dab), ("b", sb, dba)):
+            far = np.flatnonzero(dist > far_above)
+            far = far[np.argsort(-dist[far], kind="stable")[:far_keep]]
+            out[f"far_{side}"] = pts[far] * diag + centre
+            out[f"far_{side}_dist"] = dist[far]
     return out
+
+
+def far_spots(points: np.ndarray, dist: np.ndarray, diagonal: float, *, join: float = 0.02,
+              most: int = 5) -> list[dict]:
+    """The spots where two surfaces part: far samples (``points``, ``(k, 3)``, with their distances ``dist``
+    relative to ``diagonal``, as :func:`surface_distance` returns them) grouped into spots of samples closer
+    than ``join`` of the diagonal to one another (cells of that size, joined with their 26 neighbours).
+
+    Returns the ``most`` farthest spots, farthest first: ``centre`` and ``size`` (the spot's bounding box:
+    centre and extent, input units), ``max`` (relative to the diagonal) and ``samples``."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    dist = np.asarray(dist, dtype=np.float64).reshape(-1)
+    if not len(points):
+        return []
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    cell = np.floor(points / (join * diagonal)).astype(np.int64)
+    cells, of = np.unique(cell, axis=0, return_inverse=True)
+    of = of.reshape(-1)
+    pairs = cKDTree(cells).query_pairs(np.sqrt(3.0) + 1e-6, output_type="ndarray")
+    n = len(cells)
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else coo_matrix((n, n))
+    _, comp = connected_components(g, directed=False)
+    spot = comp[of]
+    out = []
+    for k in np.unique(spot):
+        sel = spot == k
+        p = points[sel]
+        lo, hi = p.min(axis=0), p.max(axis=0)
+        out.append({"centre": (0.5 * (lo + hi)).tolist(), "size": (hi - lo).tolist(),
+                    "max": float(dist[sel].max()), "samples": int(sel.sum())})
+    out.sort(key=lambda s: -s["max"])
+    return out[:most]
 
 
 def thin_features(V, F, below: float, *, n_samples: int = 20_000, seed: int = 0,
@@ -371,6 +418,29 @@ def _edge_length(points: np.ndarray, hexes: np.ndarray) -> float:
         return 0.0
     e = [np.linalg.norm(points[hexes[:, j]] - points[hexes[:, 0]], axis=1) for j in (1, 3, 4)]
     return float(np.median(np.concatenate(e)))
+
+
+def off_part_spots(d: dict, most: int = 5) -> list[dict]:
+    """Where a mesh leaves its part, from :func:`surface_distance`'s far samples (``far_above`` given): the
+    spots of the part the hex boundary does not reach (``side`` ``"part"``) and of the hex boundary beyond the
+    part (``"mesh"``), :func:`far_spots` each, the ``most`` farthest of both, farthest first."""
+    spots = [{**s, "side": side}
+             for side, key in (("part", "b"), ("mesh", "a"))
+             for s in far_spots(d[f"far_{key}"], d[f"far_{key}_dist"], d["diagonal"], most=most)]
+    spots.sort(key=lambda s: -s["max"])
+    return spots[:most]
+
+
+def spots_sentence(spots: list[dict]) -> str:
+    """The off-part spots (:func:`off_part_spots`) as one sentence: each spot's distance, centre and size."""
+    words = {"part": "the part not reached", "mesh": "the mesh beyond the part"}
+
+    def one(s):
+        c = ", ".join(f"{v:.4g}" for v in s["centre"])
+        size = " x ".join(f"{v:.2g}" for v in s["size"])
+        return f"{100 * s['max']:.2f}% at ({c}), {words[s['side']]}, {size} across"
+
+    return "Where (farthest first; deviation.png): " + "; ".join(one(s) for s in spots) + "."
 
 
 def thin_feature_sentence(V, F, points, hexes) -> str | None:
@@ -444,13 +514,20 @@ class QualityReport:
         With a surface: ``hausdorff``, ``mean`` (two-sided), ``hex_to_surface_max``,
         ``hex_to_surface_mean``, ``surface_to_hex_max``, ``surface_to_hex_mean``,
         all relative to the input surface's bounding-box diagonal, plus
-        ``diagonal`` (absolute) and sample counts.
+        ``diagonal`` (absolute) and sample counts; above the Hausdorff bar also ``spots``
+        (:func:`off_part_spots`: where the mesh leaves the part, farthest first).
     sj : (H,) float64
         Per-hex scaled Jacobian (not in :meth:`to_dict`).
     degenerate : (H,) bool
         Per-hex degenerate flag (not in :meth:`to_dict`).
     mesh : HexMesh
         The mesh, kept for :meth:`write` pictures (not in :meth:`to_dict`).
+    part_surface : ((V, 3), (F, 3)) or None
+        The input surface, kept for the ``deviation.png`` picture of a mesh off the part (not in
+        :meth:`to_dict`).
+    far : dict or None
+        ``"part"`` / ``"mesh"`` -> (points, distances): the samples of the part the mesh does not reach
+        and of the mesh beyond the part, farther than the bar (not in :meth:`to_dict`).
     """
 
     hex_count: int
@@ -472,15 +549,18 @@ class QualityReport:
     sj: np.ndarray = dataclasses.field(default=None, repr=False, compare=False)
     degenerate: np.ndarray = dataclasses.field(default=None, repr=False, compare=False)
     mesh: HexMesh = dataclasses.field(default=None, repr=False, compare=False)
+    part_surface: tuple = dataclasses.field(default=None, repr=False, compare=False)
+    far: dict = dataclasses.field(default=None, repr=False, compare=False)
 
-    _PRIVATE = ("sj", "degenerate", "mesh")
+    _PRIVATE = ("sj", "degenerate", "mesh", "part_surface", "far")
 
     def to_dict(self) -> dict:
         """All scalar and list fields as plain Python types (JSON-ready; NaN -> None)."""
         return _plain({f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in self._PRIVATE})
 
     def write(self, out_dir: str | Path, *, preview: bool = True) -> dict[str, Path]:
-        """Write ``quality.json``, ``quality.png`` (SJ histogram) and ``preview.png``.
+        """Write ``quality.json``, ``quality.png`` (SJ histogram), ``preview.png`` and, for a mesh off the part
+        (above the Hausdorff bar), ``deviation.png``: where the mesh leaves the part.
 
         Every file is written atomically.
 
@@ -495,7 +575,7 @@ class QualityReport:
         Returns
         -------
         dict
-            ``json``, ``histogram``, ``preview`` -> written paths.  The render
+            ``json``, ``histogram``, ``preview``, ``deviation`` -> written paths.  The render
             backend used is stored in ``quality.json`` under ``preview_backend``.
         """
         from . import render
@@ -510,6 +590,10 @@ class QualityReport:
             d["preview_backend"] = render.render_hex_quality(
                 self.mesh.points, self.mesh.hexes, self.sj, paths["preview"], title=_title(self)
             )
+        if self.part_surface is not None and self.far is not None and self.mesh is not None:
+            paths["deviation"] = render.plot_deviation(self.part_surface, self.mesh, self.far,
+                                                       (self.surface or {}).get("spots") or [],
+                                                       out_dir / "deviation.png", diagonal=self.surface["diagonal"])
         paths["json"] = write_json(out_dir / "quality.json", d)
         return paths
 
@@ -599,12 +683,14 @@ def quality_report(
     valid = bool(H > 0 and n_deg == 0 and sj_min is not None and sj_min > 0)
 
     surf = None
+    far = None
     if surface is not None:
         V, F = surface
         if len(quads) == 0:
             warnings.append("The hex mesh has no boundary faces; no surface distance was measured.")
         else:
-            d = surface_distance(points, quads_to_triangles(quads), V, F, n_samples=n_samples, seed=seed)
+            d = surface_distance(points, quads_to_triangles(quads), V, F, n_samples=n_samples, seed=seed,
+                                 far_above=max_hausdorff_rel)
             surf = {
                 "hausdorff": d["hausdorff"],
                 "mean": d["mean"],
@@ -621,6 +707,10 @@ def quality_report(
                     f"The hex boundary is up to {100 * d['hausdorff']:.3f}% of the bounding-box diagonal away "
                     f"from the input surface (Hausdorff), above the {100 * max_hausdorff_rel:g}% bar."
                 )
+                spots = off_part_spots(d)
+                surf["spots"] = spots
+                far = {"part": (d["far_b"], d["far_b_dist"]), "mesh": (d["far_a"], d["far_a_dist"])}
+                warnings.append(spots_sentence(spots))
                 if valid:  # a valid mesh of the wrong shape: say when the part's own thin features explain it
                     why = thin_feature_sentence(V, F, points, hexes)
                     if why:
@@ -646,6 +736,8 @@ def quality_report(
         sj=sj,
         degenerate=deg,
         mesh=mesh,
+        part_surface=(np.asarray(surface[0], float), np.asarray(surface[1])) if surf and surf.get("spots") else None,
+        far=far,
     )
 
 
@@ -655,6 +747,8 @@ __all__ = [
     "scaled_jacobian_and_degenerate",
     "vtk_scaled_jacobian",
     "surface_distance",
+    "far_spots",
+    "off_part_spots",
     "thin_features",
     "QualityReport",
     "quality_report",

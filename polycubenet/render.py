@@ -1,6 +1,6 @@
 """Off-screen pictures of hex meshes and their quality (PNG, written atomically).
 
-Two pictures:
+Three pictures:
 
 * :func:`plot_sj_histogram` -- the scaled-Jacobian histogram of a
   :class:`~polycubenet.quality.QualityReport` (matplotlib, no pyplot, Agg canvas).
@@ -23,6 +23,9 @@ Two pictures:
   was the intermittent exit-time crash of the test suite, whose flows export two parts at
   once in a thread pool.  pyvista's lazy imports are not thread-safe either, so they are
   made under the same lock.
+
+* :func:`plot_deviation` -- where a mesh off its part leaves it: the part's samples the mesh does not
+  reach and the mesh's samples beyond the part, by distance, with the report's spots numbered.
 
 Colours: SJ in [0, 1] on a colour map; SJ < 0 (inverted) is drawn red.
 """
@@ -283,4 +286,86 @@ def render_hex_quality(
     return "matplotlib"
 
 
-__all__ = ["plot_sj_histogram", "render_hex_quality"]
+def _deep(name: str):
+    """Colour map ``name`` without its palest third (a spot just over the bar stays visible on grey)."""
+    import matplotlib as mpl
+
+    return mpl.colors.ListedColormap(mpl.colormaps[name](np.linspace(0.35, 1.0, 256)))
+
+
+def plot_deviation(part_surface, mesh, far: dict, spots: list[dict], path: str | Path, *, diagonal: float,
+                   bar: float | None = None, samples: int = 12_000) -> Path:
+    """Where a hex mesh leaves its part, as a PNG (matplotlib, atomic): three views of the part (grey
+    samples of its surface), the part's samples the hex boundary does not reach (reds) and the hex
+    boundary's samples beyond the part (blues), coloured by distance, each spot numbered as the report
+    lists it (:func:`polycubenet.quality.off_part_spots`).
+
+    Parameters
+    ----------
+    part_surface : ((V, 3) float, (F, 3) int), the input surface
+    mesh : HexMesh, drawn as its boundary quads' wire in the views
+    far : dict, ``"part"`` / ``"mesh"`` -> (points ``(k, 3)``, distances ``(k,)`` relative to ``diagonal``)
+    spots : list of dict, ``centre``, ``max``, ``side``
+    path : path
+    diagonal : float, the part's bounding-box diagonal
+    bar : float, the Hausdorff bar (relative; default :data:`polycubenet.tol.HAUSDORFF_REL_MAX`)
+    samples : int, grey samples of the part
+
+    Returns
+    -------
+    Path
+    """
+    import matplotlib as mpl
+
+    from . import tol
+    from .quality import _sample_triangles
+
+    bar = tol.HAUSDORFF_REL_MAX if bar is None else bar
+    path = Path(path)
+    V, F = np.asarray(part_surface[0], float), np.asarray(part_surface[1])
+    grey = _sample_triangles(V, F, samples, np.random.default_rng(0))
+    parts = {k: (np.asarray(p, float).reshape(-1, 3), 100 * np.asarray(d, float)) for k, (p, d) in far.items()}
+    top = max([d.max() for _, d in parts.values() if len(d)] + [100 * bar * 1.01])
+    norm = mpl.colors.Normalize(100 * bar, top)
+    quads = boundary_quads(np.asarray(mesh.hexes))
+    edges = np.unique(np.sort(np.concatenate([quads[:, [0, 1]], quads[:, [1, 2]], quads[:, [2, 3]],
+                                              quads[:, [3, 0]]]), axis=1), axis=0)
+    X = np.asarray(mesh.points, float)
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    mid, half = 0.5 * (lo + hi), 0.55 * (hi - lo).max()
+    fig = _figure((15.0, 5.6))
+    views = ((25, 35), (25, 215), (-35, 125))
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection
+
+    for k, (elev, azim) in enumerate(views):
+        ax = fig.add_subplot(1, 3, k + 1, projection="3d")
+        ax.scatter(*grey.T, s=0.3, c="0.75", alpha=0.35, depthshade=False)
+        ax.add_collection3d(Line3DCollection(X[edges], colors="0.3", linewidths=0.2, alpha=0.3))
+        for key, cmap in (("part", "Reds"), ("mesh", "Blues")):
+            pts, d = parts.get(key, (np.zeros((0, 3)), np.zeros(0)))
+            if len(pts):
+                ax.scatter(*pts.T, s=6, c=d, cmap=_deep(cmap), norm=norm, depthshade=False)
+        for i, sp in enumerate(spots):
+            ax.text(*sp["centre"], f" {i + 1}", fontsize=10, color="black", weight="bold")
+        ax.set_xlim(mid[0] - half, mid[0] + half)
+        ax.set_ylim(mid[1] - half, mid[1] + half)
+        ax.set_zlim(mid[2] - half, mid[2] + half)
+        ax.view_init(elev=elev, azim=azim)
+        ax.set_box_aspect((1, 1, 1), zoom=1.45)
+        ax.set_axis_off()
+    fig.subplots_adjust(left=0.0, right=1.0, top=0.92, bottom=0.16, wspace=0.0)
+    for x0, (key, cmap, label) in zip((0.08, 0.55), (("part", "Reds", "the part not reached, % of the diagonal"),
+                                                     ("mesh", "Blues", "the mesh beyond the part, % of the diagonal"))):
+        if len(parts.get(key, ((), ()))[1]):
+            cax = fig.add_axes((x0, 0.1, 0.37, 0.03))
+            fig.colorbar(mpl.cm.ScalarMappable(norm=norm, cmap=_deep(cmap)), cax=cax,
+                         orientation="horizontal", label=label)
+    said = "; ".join(f"{i + 1}: {100 * sp['max']:.2f}% ({sp['side']})" for i, sp in enumerate(spots))
+    fig.suptitle(f"Where the mesh leaves the part (bar {100 * bar:g}% of the diagonal {diagonal:.4g}). {said}",
+                 fontsize=9)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    return path
+
+
+__all__ = ["plot_sj_histogram", "render_hex_quality", "plot_deviation"]

@@ -19,6 +19,7 @@ from polycubenet.hexmesh import (
 )
 from polycubenet.quality import (
     degenerate_mask,
+    far_spots,
     quality_report,
     scaled_jacobian,
     scaled_jacobian_and_degenerate,
@@ -253,6 +254,45 @@ def test_a_valid_mesh_off_a_part_with_features_thinner_than_its_hexes_says_so():
     assert not any("thinner" in w for w in plain.warnings)
 
 
+def test_a_mesh_off_the_part_says_where_on_both_sides_and_draws_it(tmp_path):
+    """The unit cube in 4^3 hexes with its (1, 1, 1) corner node pulled out by 0.15 on each axis, against a part
+    that is the cube plus a 0.2-wide post 0.3 tall on its top: farthest first, the post's top (the part not
+    reached, 0.3 off), the pulled corner (the mesh beyond the part, 0.15 * sqrt(3) off) and the part's corner
+    inside it, with their places in the part's coordinates, one warning sentence and deviation.png."""
+    m = structured(4)
+    X = m.points.copy()
+    corner = np.flatnonzero(np.all(np.isclose(X, 1.0), axis=1))
+    X[corner] += 0.15
+    part = _boxes([[0, 0, 0], [1, 1, 1]], [[0.4, 0.4, 1.0], [0.6, 0.6, 1.3]])
+    r = quality_report(HexMesh(X, m.hexes), part, n_samples=20_000)
+    diag = np.sqrt(2 + 1.3**2)
+    spots = r.surface["spots"]
+    # the third: the part's own corner, left inside the bulged corner hex
+    assert [s["side"] for s in spots] == ["part", "mesh", "part"]
+    post, pulled, inside = spots
+    assert post["max"] == pytest.approx(0.3 / diag, rel=0.02)
+    assert np.allclose(post["centre"][:2], 0.5, atol=0.02) and 1.0 < post["centre"][2] < 1.3
+    assert post["size"][0] == pytest.approx(0.2, abs=0.02)  # the post's width
+    assert pulled["max"] == pytest.approx(0.15 * np.sqrt(3) / diag, rel=0.02)
+    assert min(pulled["centre"]) > 0.9 and min(inside["centre"]) > 0.8 and inside["max"] < pulled["max"]
+    where = [w for w in r.warnings if w.startswith("Where")]
+    assert len(where) == 1 and "the part not reached" in where[0] and "the mesh beyond the part" in where[0]
+    paths = r.write(tmp_path / "q")
+    assert _is_png(paths["deviation"]) and _png_not_blank(paths["deviation"])
+    d = json.loads(paths["json"].read_text())
+    assert [s["side"] for s in d["surface"]["spots"]] == ["part", "mesh", "part"]
+
+
+def test_far_spots_groups_samples_by_place_farthest_first():
+    rng = np.random.default_rng(0)
+    a = rng.uniform(0, 0.01, (50, 3))  # a spot at the origin, 0.02 off
+    b = rng.uniform(0, 0.01, (30, 3)) + [0.5, 0.0, 0.0]  # one 0.5 away, 0.05 off
+    spots = far_spots(np.vstack([a, b]), np.r_[np.full(50, 0.02), np.full(30, 0.05)], diagonal=1.0)
+    assert [s["samples"] for s in spots] == [30, 50]
+    assert spots[0]["max"] == 0.05 and spots[0]["centre"][0] == pytest.approx(0.505, abs=0.01)
+    assert far_spots(np.zeros((0, 3)), np.zeros(0), diagonal=1.0) == []
+
+
 def test_mirrored_mesh_is_flagged():
     m = structured(2)
     r = quality_report(HexMesh(m.points, m.hexes[:, [4, 5, 6, 7, 0, 1, 2, 3]]))
@@ -291,6 +331,7 @@ def test_write_pictures_and_json(tmp_path):
     d = json.loads(paths["json"].read_text())
     assert d["hex_count"] == 27 and d["preview_backend"] in ("pyvista", "matplotlib")
     assert d["sj_min"] == pytest.approx(r.sj_min)
+    assert "spots" not in d["surface"] and not (tmp_path / "q" / "deviation.png").exists()  # on the part
     assert not list((tmp_path / "q").glob(".tmp-*"))  # atomic writes leave no temp files
 
 
