@@ -52,9 +52,9 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
-def _job(args: tuple[int, str, str, int, tuple | None, int | None, bool | None, bool | None, bool | None]
+def _job(args: tuple[int, str, str, int, tuple | None, int | None, bool | None, bool | None, bool | None, int]
          ) -> tuple[int, str, list]:
-    arm, checkpoint, path, steps, draws, mend_moves, own, sheets, strips = args
+    arm, checkpoint, path, steps, draws, mend_moves, own, sheets, strips, hexes = args
     import torch
 
     torch.set_num_threads(1)
@@ -62,7 +62,7 @@ def _job(args: tuple[int, str, str, int, tuple | None, int | None, bool | None, 
 
     ((name, row),) = mesh_learned([Path(path)], checkpoint, steps, draws=draws,
                                      mend_moves=mend_moves, own_structure=own, sheets=sheets,
-                                     strips=strips).items()
+                                     strips=strips, hexes=hexes).items()
     return arm, name, list(row)
 
 
@@ -70,7 +70,7 @@ def compare(checkpoints: list[str], parts: list[Path], workers: int = 1,
             draws: list[tuple | None] | None = None, mends: list[int | None] | None = None,
             misses_only: bool = False, owns: list[bool | None] | None = None,
             sheets: list[bool | None] | None = None,
-            strips: list[bool | str | None] | None = None) -> list[dict[str, list]]:
+            strips: list[bool | str | None] | None = None, hexes: int = 3000) -> list[dict[str, list]]:
     """Per arm (a checkpoint, with its table of further draws from ``draws``: None for the policy's) part
     name -> :func:`unseen_parts.mesh_learned`'s row, every checkpoint at its own default steps.  With
     ``misses_only`` the arms after the first run only on the parts the first did not mesh, and take the first's
@@ -78,7 +78,8 @@ def compare(checkpoints: list[str], parts: list[Path], workers: int = 1,
     the first does (``--mend-moves``, ``--own-structure``), not for another checkpoint.  ``owns``: each arm's
     ``RealiseConfig.own_structure`` (None: the config's); ``sheets``: each arm's opposite-faces rule
     (``ExtractConfig.sheet_bandwidths``: None the config's, False off); ``strips``: each arm's thin-strip rule of
-    the realisation (``ClassicalConfig.keep_strips`` and ``RealiseConfig.keep_sheets``; None the configs')."""
+    the realisation (``ClassicalConfig.keep_strips`` and ``RealiseConfig.keep_sheets``; None the configs').
+    ``hexes``: every arm's ``PipelineConfig.target_hexes``."""
     from polycubenet.inference import resolve_steps
 
     draws = draws or [None] * len(checkpoints)
@@ -89,7 +90,7 @@ def compare(checkpoints: list[str], parts: list[Path], workers: int = 1,
 
     def jobs(arms, which):
         return [(i, checkpoints[i], str(p), int(resolve_steps(None, "cpu", checkpoints[i])[1]), draws[i], mends[i],
-                 owns[i], sheets[i], strips[i])
+                 owns[i], sheets[i], strips[i], int(hexes))
                 for i in arms for p in which]
 
     out: list[dict[str, list]] = [{} for _ in checkpoints]
@@ -158,6 +159,9 @@ def main(argv=None) -> int:
                     help="ExtractConfig.sheet_bandwidths per checkpoint: on (default) or off (None; see above)")
     ap.add_argument("--strips", nargs="+", default=None, choices=["on", "repair", "off", "default"],
                     help="the realisation's thin-strip rule per checkpoint (see above)")
+    ap.add_argument("--hexes", type=int, default=3000,
+                    help="target hexes of every mesh (default 3000, the figures of sessions 66-89; the product's "
+                         "default is 5000)")
     ap.add_argument("--only", nargs="+", default=None, help="only these parts of the sets (names without .step)")
     ap.add_argument("--misses-only", action="store_true",
                     help="the arms after the first only on the parts the first did not mesh (see compare)")
@@ -198,14 +202,15 @@ def main(argv=None) -> int:
         if missing:
             ap.error(f"--only names parts the sets do not make: {' '.join(sorted(missing))}")
         parts = [p for p in parts if p.stem in set(args.only)]
-    result = compare(args.checkpoints, parts, args.workers, tables, mends, args.misses_only, owns, sheets, strips)
+    result = compare(args.checkpoints, parts, args.workers, tables, mends, args.misses_only, owns, sheets, strips,
+                     hexes=args.hexes)
     rows = summary(names, args.checkpoints, result, args.draws, mends, owns, sheets, strips)
     print(f"\n{'arm':<16} {'meshed':>9} {'part str.':>9} {'seconds':>8}  gained / lost against {names[0]}")
     for r in rows:
         print(f"{r['name']:<16} {r['meshed']:>4} / {r['parts']:<3} {r['part_structure']:>9} {r['seconds']:>8}  "
               f"+{len(r['gained'])} "
               f"{' '.join(r['gained'])} / -{len(r['lost'])} {' '.join(r['lost'])}")
-    write_json(args.json, {"sets": args.sets, "count": args.count, "only": args.only,
+    write_json(args.json, {"sets": args.sets, "count": args.count, "hexes": args.hexes, "only": args.only,
                            "misses_only": args.misses_only, "summary": rows,
                            "rows": dict(zip(names, result)),
                            "seconds": round(time.perf_counter() - t0, 1)})

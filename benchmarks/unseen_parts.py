@@ -439,7 +439,7 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
                  learned_maps: tuple[str, ...] | None = None, snap_planes: float | str | None = "default",
                  draws: tuple | None = None, first_anchors: str = "uniform", spot_mend: bool = True,
                  mend_moves: int | None = None, own_structure: bool | None = None,
-                 sheets: bool | None = None, strips: bool | str | None = None) -> dict:
+                 sheets: bool | None = None, strips: bool | str | None = None, hexes: int = 3000) -> dict:
     """Mesh through the learned source only (``--polycube learned``: the first draw at ``steps``,
     then the model's further draws, ``polycubenet.policy.LEARNED_DRAWS``; no classical fallback), as
     ``mesh_part`` does: name -> (valid, faithful and at least the quality bar ``min_sj``, SJ min,
@@ -457,7 +457,8 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
     planes that face opposite ways (``ExtractConfig.sheet_bandwidths=None``, the code before session 70; None: the
     config's).  ``strips``: the realisation's thin-strip rule (``ClassicalConfig.keep_strips`` and
     ``RealiseConfig.keep_sheets`` together; ``"repair"``: ``keep_strips`` alone; None: the configs').  Each row ends with whether
-    the kept mesh's spots were mended."""
+    the kept mesh's spots were mended.  ``hexes``: ``PipelineConfig.target_hexes`` (3000 in every figure of
+    sessions 66-88; the product's default is 5000)."""
     from polycubenet import policy
     from polycubenet.inference import ModelSource
     from polycubenet.pipeline import PipelineConfig, mesh_part
@@ -469,12 +470,12 @@ def mesh_learned(paths: list[Path], checkpoint: str, steps: int, draw_seed: int 
         try:
             return mesh_learned(paths, checkpoint, steps, draw_seed, learned_maps, snap_planes,
                                 first_anchors=first_anchors, spot_mend=spot_mend, mend_moves=mend_moves,
-                                own_structure=own_structure, sheets=sheets, strips=strips)
+                                own_structure=own_structure, sheets=sheets, strips=strips, hexes=hexes)
         finally:
             policy.LEARNED_DRAWS = saved
 
     res = {}
-    cfg = PipelineConfig(polycube="learned", target_hexes=3000)
+    cfg = PipelineConfig(polycube="learned", target_hexes=int(hexes))
     if learned_maps:
         cfg = dataclasses.replace(cfg, learned_maps=tuple(learned_maps))
     if snap_planes != "default":
