@@ -488,7 +488,7 @@ class _Progress:
 
 
 def _part_artifact(r: dict, out: Path) -> None:
-    """The markdown artifact of one finished part: its quality table and a picture."""
+    """The markdown artifact of one finished part: its quality table and a picture (two for a mesh off the part)."""
     from prefect.artifacts import create_markdown_artifact
 
     q = r.get("quality") or {}
@@ -507,5 +507,9 @@ def _part_artifact(r: dict, out: Path) -> None:
     uri = library.thumbnail_data_uri(out / r["name"] / "preview.png") if r["status"] == "meshed" else None
     if uri:
         lines += ["", f"![preview]({uri})"]
+    where = out / r["name"] / "deviation.png"  # a mesh off the part: where it leaves it
+    uri = library.thumbnail_data_uri(where, width=480) if r["status"] == "meshed" and where.is_file() else None
+    if uri:
+        lines += ["", f"![where the mesh leaves the part]({uri})"]
     create_markdown_artifact(markdown="\n".join(lines), key=f"part-{_slug(r['name'])}",
                              description=f"{r['name']}: {r['status']}")

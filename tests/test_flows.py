@@ -309,6 +309,31 @@ def test_artifacts_read_back_from_the_api(batch):
     assert len(progress) == 1 and float(progress[0].data) == pytest.approx(100.0)
 
 
+def test_a_part_meshed_off_its_surface_shows_where_in_its_artifact(tmp_path, monkeypatch):
+    """The part's markdown artifact embeds deviation.png beside the preview when the export wrote one (a mesh off
+    the part), and only the preview otherwise."""
+    import prefect.artifacts
+    from PIL import Image
+
+    from flows.mesh_library import _part_artifact
+
+    said = {}
+    monkeypatch.setattr(prefect.artifacts, "create_markdown_artifact",
+                        lambda markdown, key, description: said.update({key: markdown}))
+    d = tmp_path / "bracket"
+    d.mkdir()
+    for name, colour in (("preview.png", (20, 120, 200)), ("deviation.png", (200, 30, 30))):
+        Image.new("RGB", (200, 100), colour).save(d / name)
+    row = {"name": "bracket", "status": "meshed", "path": "parts/bracket.step", "stage": "export",
+           "provenance": "learned", "timings": {"export": 1.0}, "reused": [], "quality": {"hausdorff": 0.02}}
+    _part_artifact(row, tmp_path)
+    md = said["part-bracket"]
+    assert md.count("data:image/jpeg;base64,") == 2 and "where the mesh leaves the part" in md
+    (d / "deviation.png").unlink()
+    _part_artifact(row, tmp_path)
+    assert said["part-bracket"].count("data:image/jpeg;base64,") == 1
+
+
 def test_forced_failure_then_retry_reuses_earlier_stages(prefect_harness, part_lib, tmp_path, monkeypatch):
     from flows.retry_failed import retry_failed
 
