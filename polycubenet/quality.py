@@ -515,7 +515,7 @@ class QualityReport:
         ``hex_to_surface_mean``, ``surface_to_hex_max``, ``surface_to_hex_mean``,
         all relative to the input surface's bounding-box diagonal, plus
         ``diagonal`` (absolute) and sample counts; above the Hausdorff bar also ``spots``
-        (:func:`off_part_spots`: where the mesh leaves the part, farthest first).
+        (:func:`off_part_spots`: where the mesh leaves the part, farthest first) and ``bar``.
     sj : (H,) float64
         Per-hex scaled Jacobian (not in :meth:`to_dict`).
     degenerate : (H,) bool
@@ -593,7 +593,8 @@ class QualityReport:
         if self.part_surface is not None and self.far is not None and self.mesh is not None:
             paths["deviation"] = render.plot_deviation(self.part_surface, self.mesh, self.far,
                                                        (self.surface or {}).get("spots") or [],
-                                                       out_dir / "deviation.png", diagonal=self.surface["diagonal"])
+                                                       out_dir / "deviation.png", diagonal=self.surface["diagonal"],
+                                                       bar=self.surface.get("bar"))
         paths["json"] = write_json(out_dir / "quality.json", d)
         return paths
 
@@ -709,6 +710,7 @@ def quality_report(
                 )
                 spots = off_part_spots(d)
                 surf["spots"] = spots
+                surf["bar"] = max_hausdorff_rel
                 far = {"part": (d["far_b"], d["far_b_dist"]), "mesh": (d["far_a"], d["far_a_dist"])}
                 warnings.append(spots_sentence(spots))
                 if valid:  # a valid mesh of the wrong shape: say when the part's own thin features explain it
