@@ -17,7 +17,7 @@ def _row(ok, seconds):
 def _fake_jobs(monkeypatch, module, outcome, field: str) -> list:
     """Replace ``module._job`` by ``outcome(job as a dict) -> row``; returns the (arm, part, job[field]) it saw."""
     seen = []
-    keys = ("arm", "checkpoint", "path", "steps", "draws", "mend_moves", "own", "sheets", "strips")
+    keys = ("arm", "checkpoint", "path", "steps", "draws", "mend_moves", "own", "sheets", "strips", "hexes")
 
     def fake_job(job):
         d = dict(zip(keys, job, strict=True))
@@ -62,8 +62,8 @@ def test_misses_only_runs_the_later_arms_on_the_first_arms_misses(monkeypatch):
     ran = []
 
     def fake_job(job):
-        arm, ck, path, steps, draws, mend_moves, own, sheets, strips = job
-        assert own is None and strips is None
+        arm, ck, path, steps, draws, mend_moves, own, sheets, strips, hexes = job
+        assert own is None and strips is None and hexes == 3000
         name = Path(path).stem
         ran.append((arm, name, mend_moves))
         ok = name == "a" or (mend_moves == 3 and name == "c")
@@ -97,6 +97,18 @@ def test_the_own_structure_arm_is_passed_on_and_its_meshes_on_the_part_s_structu
     rows = summary(["off", "on"], ["m.pt", "m.pt"], out, owns=[False, True])
     assert [(r["meshed"], r["part_structure"], r["own_structure"]) for r in rows] == [(1, 0, False), (2, 1, True)]
     assert rows[1]["gained"] == ["b"]
+
+
+def test_the_mesh_size_reaches_every_job(monkeypatch):
+    import learned_meshes
+
+    seen = _fake_jobs(monkeypatch, learned_meshes, lambda d: _row(True, 1.0), "hexes")
+    parts = [Path(f"/x/{n}.step") for n in "ab"]
+    learned_meshes.compare(["m.pt", "n.pt"], parts, hexes=5000)
+    assert sorted(seen) == [(0, "a", 5000), (0, "b", 5000), (1, "a", 5000), (1, "b", 5000)]
+    seen.clear()
+    learned_meshes.compare(["m.pt"], parts)
+    assert [h for _, _, h in seen] == [3000, 3000]  # the series' size unless told
 
 
 def test_the_sheets_arm_reaches_each_job_and_the_summary(monkeypatch):
