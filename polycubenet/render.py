@@ -316,6 +316,7 @@ def plot_deviation(part_surface, mesh, far: dict, spots: list[dict], path: str |
     Path
     """
     import matplotlib as mpl
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection
 
     from . import tol
     from .quality import _sample_triangles
@@ -335,8 +336,6 @@ def plot_deviation(part_surface, mesh, far: dict, spots: list[dict], path: str |
     mid, half = 0.5 * (lo + hi), 0.55 * (hi - lo).max()
     fig = _figure((15.0, 5.6))
     views = ((25, 35), (25, 215), (-35, 125))
-    from mpl_toolkits.mplot3d.art3d import Line3DCollection
-
     for k, (elev, azim) in enumerate(views):
         ax = fig.add_subplot(1, 3, k + 1, projection="3d")
         ax.scatter(*grey.T, s=0.3, c="0.75", alpha=0.35, depthshade=False)
