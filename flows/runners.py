@@ -13,6 +13,13 @@ here on one synthetic part at 5000 hexes, the pullback took 36.0 s in a Dask wor
 of it system time) against 12.5 s (0.8 s system) without the variable, and the whole flow
 ran 2-2.5x slower than a plain loop.  The stages free their arrays when a part is done,
 so the worker's memory stays flat without the trim.
+
+Every local worker process loads open3d (and gmsh) in its main thread as it starts
+(:func:`dask_setup`, Dask's preload hook).  Without that, open3d was first loaded in the task
+thread, and a worker whose task had raycast and then rendered a VTK preview (every part does)
+aborted in libEGL's destructor as the cluster closed: ``malloc_consolidate(): unaligned fastbin
+chunk detected`` on the user's terminal after every ``polycubenet mesh`` run, though the results
+were complete.
 """
 
 from __future__ import annotations
@@ -38,10 +45,28 @@ def dask_runner(workers: int | None = None, address: str | None = None, threads_
     if address:
         return DaskTaskRunner(address=address)
     kw = {"n_workers": int(workers or 1), "threads_per_worker": threads_per_worker, "processes": True,
-          "dashboard_address": ":0"}
+          "dashboard_address": ":0", "preload": [WORKER_PRELOAD]}
     if memory:
         kw["memory_limit"] = memory
     return DaskTaskRunner(cluster_kwargs=kw)
+
+
+#: the module each local worker process imports as it starts (its :func:`dask_setup` runs there)
+WORKER_PRELOAD = __name__
+
+
+def dask_setup(worker=None) -> None:
+    """Dask's preload hook, run by every local worker process as it starts, in its main thread: load
+    gmsh, and pymeshlab then open3d (:mod:`polycubenet._o3d`'s order), before a task thread does.
+
+    open3d first loaded in a task thread, then VTK rendering (or gmsh first loaded in another
+    thread) makes the process abort at its normal exit, in libEGL's destructor.  ``flows.cli.leave``
+    skips those destructors in the command line's own process; a worker process exits normally when
+    the cluster closes, so it loads them here first
+    (``tests/test_flows.py::test_local_dask_workers_leave_without_aborting_in_native_destructors``)."""
+    import gmsh  # noqa: F401
+
+    from polycubenet import _o3d  # noqa: F401
 
 
 def make_runner(workers: int | None = None, address: str | None = None, kind: str = "dask", memory: str | None = None):

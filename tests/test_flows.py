@@ -543,6 +543,49 @@ def test_local_dask_workers_start_without_malloc_trim(monkeypatch):
         dask.config.config.update(saved)
 
 
+_WORKER_EXIT = """
+import sys
+
+import numpy as np
+import trimesh
+from distributed import Client, LocalCluster
+
+from flows.runners import dask_runner, prepare_dask
+
+
+def stages(out):  # a part's stages in the task's thread: open3d's raycasting, then a VTK preview
+    from polycubenet import pullback
+    from polycubenet.render import render_hex_quality
+
+    m = trimesh.creation.icosphere(2)
+    pullback._closest(pullback._scene(np.asarray(m.vertices), np.asarray(m.faces)), np.zeros((3, 3)))
+    cube = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
+    return render_hex_quality(cube, np.arange(8)[None], np.array([0.5]), out, backend="pyvista")
+
+
+if __name__ == "__main__":
+    runner = dask_runner(1)
+    prepare_dask(runner)
+    with LocalCluster(**runner.cluster_kwargs) as cluster, Client(cluster) as client:
+        print(client.submit(stages, sys.argv[1], pure=False).result())
+"""
+
+
+def test_local_dask_workers_leave_without_aborting_in_native_destructors(tmp_path):
+    """A worker process whose task thread raycast with open3d and then rendered a VTK preview (every part
+    does) aborted in libEGL's destructor as the cluster closed: glibc's "malloc_consolidate(): unaligned
+    fastbin chunk detected" on the terminal after every ``polycubenet mesh`` run, though its results were
+    complete.  The runner's workers load open3d in their main thread as they start
+    (``flows.runners.dask_setup``)."""
+    pytest.importorskip("pyvista")
+    script = tmp_path / "worker_exit.py"
+    script.write_text(_WORKER_EXIT)
+    r = subprocess.run([sys.executable, str(script), str(tmp_path / "preview.png")], capture_output=True, text=True,
+                       timeout=300, cwd=str(Path(__file__).resolve().parents[1]))
+    assert r.returncode == 0 and r.stdout.split() == ["pyvista"], (r.returncode, r.stdout, r.stderr[-2000:])
+    assert "fastbin" not in r.stderr and "malloc" not in r.stderr, r.stderr[-2000:]
+
+
 def test_scan_drops_meshes_only_new_and_changed(batch, part_lib, tmp_path):
     from flows.scan_drops import scan_drops
 
