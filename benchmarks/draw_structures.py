@@ -13,8 +13,10 @@ planes lie).  The record says which draw meshed the part, or that none did.
 The replay counts, for the rule "a draw whose cells equal an earlier draw's of the same part is left
 before its registration": the draws it would leave on parts no draw meshed (the time saved), those it
 would leave before the draw that meshed (saved too), and the parts whose meshing draw it would leave
-(lost).  Prints the parts with a repeated structure and the totals; writes the JSON (per part: the
-record's outcome and each draw's signature, grid shape and cell count, or its extraction error).
+(lost).  It also counts a second rule, "stop the learned source when its first K draws were all rejected at
+extraction" (K = 2, 3, 4): the parts it loses and the parts no draw meshed that it stops early.  Prints the
+parts with a repeated structure and the totals; writes the JSON (per part: the record's outcome and each
+draw's signature, grid shape and cell count, or its extraction error).
 """
 
 from __future__ import annotations
@@ -125,6 +127,12 @@ def replay(rec: dict) -> dict:
     print(f"\n{tot['parts']} parts not meshed by their first draw; {tot['repeated']} with a repeated structure; "
           f"draws left on parts no draw meshed: {tot['left_on_misses']}; before the meshing draw: "
           f"{tot['left_before_the_hit']}; parts lost: {len(tot['lost'])} {tot['lost']}")
+    for k in (2, 3, 4):
+        first = {p: r for p, r in rec.items() if len(r["draws"]) > k and all(x["sig"] is None for x in r["draws"][:k])}
+        lost = [p for p, r in first.items() if r["meshed"]]
+        tot[f"stop_after_{k}_rejected"] = {"lost": lost, "stopped": sum(not r["meshed"] for r in first.values())}
+        print(f"stop after the first {k} draws all rejected at extraction: parts lost {len(lost)} {lost}; parts no "
+              f"draw meshed stopped early {sum(not r['meshed'] for r in first.values())}")
     return tot
 
 
