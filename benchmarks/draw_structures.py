@@ -80,8 +80,8 @@ def record(files: list[str], checkpoint: str, out: Path, parts_dir: Path) -> dic
                 if not todo:
                     continue
                 folder = parts_dir / f"{family}{seed}"
-                if not folder.exists():
-                    folder.mkdir(parents=True)
+                if not all(any(folder.glob(p + ".*")) for p in todo):  # not built yet, or a build cut short
+                    folder.mkdir(parents=True, exist_ok=True)
                     make_parts(folder, d["count"], int(seed), family)
                 for p in todo:
                     draws.clear()
@@ -130,9 +130,10 @@ def replay(rec: dict) -> dict:
     for k in (2, 3, 4):
         first = {p: r for p, r in rec.items() if len(r["draws"]) > k and all(x["sig"] is None for x in r["draws"][:k])}
         lost = [p for p, r in first.items() if r["meshed"]]
-        tot[f"stop_after_{k}_rejected"] = {"lost": lost, "stopped": sum(not r["meshed"] for r in first.values())}
+        stopped = len(first) - len(lost)
+        tot[f"stop_after_{k}_rejected"] = {"lost": lost, "stopped": stopped}
         print(f"stop after the first {k} draws all rejected at extraction: parts lost {len(lost)} {lost}; parts no "
-              f"draw meshed stopped early {sum(not r['meshed'] for r in first.values())}")
+              f"draw meshed stopped early {stopped}")
     return tot
 
 
