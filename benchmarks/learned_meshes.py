@@ -36,6 +36,8 @@ that borders both faces of another axis is kept, and close planes facing opposit
 merged: ``ClassicalConfig.keep_strips``, ``RealiseConfig.keep_sheets``, the default since session 82; ``repair``:
 the first alone; ``off``: both off, the code before session 81); compare it on whole
 sets too.  ``--only NAME ...`` keeps only the named parts of the sets (e.g. an earlier run's misses).
+``--files PATH ...`` adds mesh files of any kind the product reads (the hard models' seeded variants, a customer's
+parts), each named by its file stem; with it and no ``--sets`` only the files are run.
 """
 
 from __future__ import annotations
@@ -145,8 +147,12 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--checkpoints", nargs="+", required=True, help="the first is the baseline")
     ap.add_argument("--names", nargs="+", default=None, help="one name per checkpoint (default: file names)")
-    ap.add_argument("--sets", nargs="+", default=["mixed:61", "mixed:67"],
-                    help="family:seed of benchmarks/unseen_parts.py (default: the dev sets, used for no reported figure)")
+    ap.add_argument("--sets", nargs="*", default=None,
+                    help="family:seed of benchmarks/unseen_parts.py (default: the dev sets mixed:61 mixed:67, used for "
+                         "no reported figure; none when --files is given)")
+    ap.add_argument("--files", nargs="+", type=Path, default=[],
+                    help="mesh files to run as well (STEP, STL, ...; e.g. the hard models' variants), named by their "
+                         "stems, which must differ")
     ap.add_argument("--count", type=int, default=16, help="parts per set")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--draws", nargs="+", default=None,
@@ -191,12 +197,19 @@ def main(argv=None) -> int:
     if args.strips is not None and len(args.strips) != len(args.checkpoints):
         ap.error("--strips needs one value per checkpoint")
     strips = [{"default": None, "on": True, "off": False, "repair": "repair"}[o] for o in args.strips] if args.strips else None
+    if args.sets is None:
+        args.sets = [] if args.files else ["mixed:61", "mixed:67"]
+    missing = [str(f) for f in args.files if not f.is_file()]
+    if missing:
+        ap.error(f"--files: no such file: {' '.join(missing)}")
     t0 = time.perf_counter()
     folder = Path(tempfile.mkdtemp(prefix="learned-meshes-"))
-    parts = []
+    parts = [f.resolve() for f in args.files]
     for s in args.sets:
         family, seed = s.split(":")
         parts += [p for p, _ in make_parts(folder, args.count, int(seed), family)]
+    if len({p.stem for p in parts}) != len(parts):
+        ap.error("the parts' names (file stems) must differ: rename the --files that share one")
     if args.only:
         missing = set(args.only) - {p.stem for p in parts}
         if missing:
@@ -210,7 +223,7 @@ def main(argv=None) -> int:
         print(f"{r['name']:<16} {r['meshed']:>4} / {r['parts']:<3} {r['part_structure']:>9} {r['seconds']:>8}  "
               f"+{len(r['gained'])} "
               f"{' '.join(r['gained'])} / -{len(r['lost'])} {' '.join(r['lost'])}")
-    write_json(args.json, {"sets": args.sets, "count": args.count, "hexes": args.hexes, "only": args.only,
+    write_json(args.json, {"sets": args.sets, "files": [str(f) for f in args.files], "count": args.count, "hexes": args.hexes, "only": args.only,
                            "misses_only": args.misses_only, "summary": rows,
                            "rows": dict(zip(names, result)),
                            "seconds": round(time.perf_counter() - t0, 1)})

@@ -135,3 +135,37 @@ def test_the_strips_arm_reaches_each_job_and_the_summary(monkeypatch):
     assert sorted(seen) == [(0, "a", False), (0, "b", False), (1, "a", True), (1, "b", True)]
     rows = summary(["off", "on"], ["m.pt", "m.pt"], out, strips=[False, True])
     assert [(r["meshed"], r["strips"]) for r in rows] == [(1, False), (2, True)] and rows[1]["gained"] == ["b"]
+
+
+def test_files_are_run_alone_by_their_stems_and_stems_must_differ(monkeypatch, tmp_path):
+    """``--files`` runs the named mesh files (no unseen sets unless ``--sets`` is given), each part named by its
+    stem; two files with one stem, or a missing file, are refused before anything runs."""
+    import json
+
+    import learned_meshes
+    import unseen_parts
+
+    from polycubenet.inference import DEFAULT_CHECKPOINT
+
+    def no_sets(*a, **k):
+        raise AssertionError("no unseen set is built when only --files are given")
+
+    monkeypatch.setattr(unseen_parts, "make_parts", no_sets)
+    seen = _fake_jobs(monkeypatch, learned_meshes, lambda d: _row(d["name"] == "gusset_s1", 1.0), "path")
+    a, b = tmp_path / "gusset_s1.step", tmp_path / "gusset_s2.step"
+    for f in (a, b):
+        f.write_text("not read: the job is replaced")
+    out = tmp_path / "lm.json"
+    ck = str(DEFAULT_CHECKPOINT)
+    assert learned_meshes.main(["--checkpoints", ck, "--files", str(a), str(b), "--json", str(out)]) == 0
+    assert sorted(name for _, name, _ in seen) == ["gusset_s1", "gusset_s2"]
+    rec = json.loads(out.read_text())
+    assert rec["sets"] == [] and rec["summary"][0]["meshed"] == 1 and rec["summary"][0]["parts"] == 2
+    (tmp_path / "other").mkdir()
+    twin = tmp_path / "other" / "gusset_s1.step"
+    twin.write_text("x")
+    for files in ([str(a), str(twin)], [str(a), str(tmp_path / "missing.step")]):
+        seen.clear()
+        with pytest.raises(SystemExit):
+            learned_meshes.main(["--checkpoints", ck, "--files", *files, "--json", str(out)])
+        assert seen == []

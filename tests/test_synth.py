@@ -441,11 +441,89 @@ def test_breakouts_open_a_hole_into_an_end_the_slanted_cut_tilts_and_leave_the_d
     assert np.array_equal(a.cond.points, b.cond.points) and np.array_equal(a.target.points, b.target.points)
 
 
+def test_gussets_are_lone_ribs_resting_in_concave_corners_and_leave_the_default_stream():
+    """``gussets``: each rib is one layer thick along its axis, every cell of its two inner sides rests on solid
+    that is no other rib, nothing lies beside it along the axis or just past its free faces; the cut of an L's rib
+    (``gusset_cut``) puts the rib's free corner on the line between its two legs (70-95 % of the rib), moves
+    nothing of the L, and is refused where solid other than the rib lies in its region; make_pair cuts the ribs
+    first and leaves their edges otherwise sharp; 0 gives exactly the pair the seed gave before the option."""
+    from polycubenet.synth.deform import GUSSET_FADE, gusset_cut
+    from polycubenet.synth.polycube import _behind, _Builder
+
+    ribs = 0
+    for s in range(40):
+        b = _Builder(np.random.default_rng([91, s]), np.array([6, 5, 4]))
+        b.notch(int(s % 3), through=True)  # an L or a step: concave corners
+        for _ in range(2):
+            before, rib_before = b.occ.copy(), b.ribs.copy()
+            if not b.gusset():
+                assert np.array_equal(b.occ, before)
+                continue
+            ribs += 1
+            kind, a, lo, hi = b.features[-1]
+            sb, sc = b.signs[len(b.features) - 1]
+            assert kind == "gusset" and hi[a] - lo[a] == 1 and b.occ[b.box(lo, hi)].all()
+            assert check_occupancy(b.occ) is None
+            bb, cc = (a + 1) % 3, (a + 2) % 3
+            solid = before & ~rib_before
+            box = b.box(lo, hi)
+            for ax, sg in ((bb, sb), (cc, sc)):  # the rib's inner sides: the cells behind them are solid
+                blo, bhi = lo.copy(), hi.copy()
+                if sg > 0:
+                    blo[ax], bhi[ax] = lo[ax], lo[ax] + 1
+                else:
+                    blo[ax], bhi[ax] = hi[ax] - 1, hi[ax]
+                assert _behind(solid, ax, int(sg))[b.box(blo, bhi)].all()
+            for side in (lo[a] - 1, hi[a]):  # nothing beside it along its axis
+                blo, bhi = lo.copy(), hi.copy()
+                blo[a], bhi[a] = side, side + 1
+                if 0 <= side < b.occ.shape[a]:
+                    assert not b.occ[b.box(blo, bhi)].any()
+            assert not before[box].any()
+    assert ribs >= 25
+
+    occ = np.zeros((3, 3, 3), dtype=bool)  # an L along x: base z < 1, upright y < 1; the rib at x = 1
+    occ[:, :, 0] = True
+    occ[:, 0, :] = True
+    rib = occ.copy()
+    rib[1, 1:, 1:] = True
+    g = [np.arange(4.0)] * 3
+    lo, hi = np.array([1.0, 1.0, 1.0]), np.array([2.0, 3.0, 3.0])
+    for s in range(10):
+        cut = gusset_cut(np.random.default_rng(s), *g, rib, lo, hi, 0, (1.0, 1.0))
+        assert cut is not None and cut.style == "chamfer" and np.allclose(cut.corner, [3.0, 3.0])
+        assert 0.7 * 2 <= cut.radius <= 0.95 * 2 and 0.7 * 2 <= cut.radius2 <= 0.95 * 2
+        free = cut(np.array([[1.5, 3.0, 3.0]]))[0]  # the rib's free corner, on the chamfer's line
+        assert np.allclose(free[1:], [3.0 - cut.radius / 2, 3.0 - cut.radius2 / 2])
+        L = np.array([[x, y, z] for x in (0.0, 1.5, 3.0) for y in np.linspace(0, 3, 7) for z in np.linspace(0, 3, 7)
+                      if y <= 1.0 or z <= 1.0])
+        assert np.allclose(cut(L), L)  # the plates do not move
+    crowded = rib.copy()
+    crowded[2, 2, 2] = True  # solid in another layer within the cut's region
+    assert gusset_cut(np.random.default_rng(0), *g, crowded, lo, hi, 0, (1.0, 1.0)) is None
+
+    cut_pairs = 0
+    for seed in range(12):
+        pair = make_pair(seed, n_cond=64, n_target=64, style="extrusion", gussets=1.0)
+        found = [f for f in pair.meta["features"] if f["kind"] == "gusset"]
+        chamfers = [m for m in pair.deformation.maps if m.kind == "round_edge" and m.style == "chamfer"
+                    and m.fade == GUSSET_FADE and m.radius2 is not None]
+        for m in chamfers:  # the ribs' cuts come first, each on a rib's free edge
+            assert pair.deformation.maps.index(m) < len(chamfers)
+            assert any(f["axis"] == m.axis and np.allclose(f["signs"], m.signs) for f in found)
+        cut_pairs += bool(chamfers)
+    assert cut_pairs >= 6
+    a = make_pair(3, n_cond=64, n_target=64, cad_features=True, whole_slants=True)
+    b = make_pair(3, n_cond=64, n_target=64, cad_features=True, whole_slants=True, gussets=0.0)
+    assert np.array_equal(a.cond.points, b.cond.points) and np.array_equal(a.target.points, b.target.points)
+
+
 @pytest.mark.parametrize("flags, key, value", [(["--tall-bosses"], "tall_bosses", True),
                                                (["--min-holes", "2"], "min_holes", 2),
-                                               (["--breakouts", "1"], "breakouts", 1.0)])
+                                               (["--breakouts", "1"], "breakouts", 1.0),
+                                               (["--gussets", "1"], "gussets", 1.0)])
 def test_generator_options_are_recorded_and_regenerated(tmp_path, flags, key, value):
-    """``--tall-bosses``, ``--min-holes`` and ``--breakouts`` are in the manifest, and a shard's pair rebuilds from
+    """``--tall-bosses``, ``--min-holes``, ``--breakouts`` and ``--gussets`` are in the manifest, and a shard's pair rebuilds from
     its seed with the option."""
     rc = synth_main(["--out", str(tmp_path), "--count", "2", "--seed", "6", "--per-shard", "2", "--n-cond", "40",
                      "--n-target", "40", "--cad-features", *flags, "--no-progress"])

@@ -61,6 +61,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--breakouts", type=float, default=0.0, metavar="P",
                    help="the share P of non-turned pairs with a hole that breaks out through a slanted end "
                         "(default 0; see make_pair)")
+    p.add_argument("--gussets", type=float, default=0.0, metavar="P",
+                   help="the share P of non-turned pairs with triangular ribs in concave corners, as brackets have "
+                        "(default 0; see make_pair)")
     p.add_argument("--overwrite", action="store_true", help="regenerate existing shards / replace another dataset")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -77,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
             whole_slants=args.whole_slants, max_strength=args.max_strength, tall_bosses=args.tall_bosses,
             full_slants=args.full_slants, cut_slants=args.cut_slants, turned=args.turned,
             bolt_circles=args.bolt_circles, flanges=args.flanges, min_holes=args.min_holes, breakouts=args.breakouts,
-            progress=not args.no_progress,
+            gussets=args.gussets, progress=not args.no_progress,
         )
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)

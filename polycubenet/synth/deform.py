@@ -554,6 +554,38 @@ def breakout_cut(rng: np.random.Generator, lo, hi, box_lo, box_hi, axis: int) ->
                     profile="cut")
 
 
+#: how far past a gusset's free edge its cut fades out, in units of the cut's legs (:func:`gusset_cut`)
+GUSSET_FADE = 0.2
+
+
+def gusset_cut(rng: np.random.Generator, xs, ys, zs, occ, box_lo, box_hi, axis: int, signs) -> RoundEdge | None:
+    """The cut that makes a ``gusset`` rib (:meth:`polycubenet.synth.polycube._Builder.gusset`: box
+    ``box_lo``-``box_hi``, one layer thick along ``axis``, free edge outward along ``signs``) the triangle of a
+    bracket's rib: a chamfer of its free edge (:class:`RoundEdge`) whose legs are 70-95 % of the rib's extents on
+    the two other axes, so that only a narrow strip of the rib's top and outer faces is left.  None where the
+    map's region (the legs inside the edge, :data:`GUSSET_FADE` of them outside, along every layer of ``axis``)
+    holds solid other than the rib: the chamfer acts along the whole line and would cut that too."""
+    b, c = _other_axes(axis)
+    s = np.asarray(signs, dtype=np.float64)
+    box_lo, box_hi = np.asarray(box_lo, dtype=np.float64), np.asarray(box_hi, dtype=np.float64)
+    corner = np.array([box_hi[b] if s[0] > 0 else box_lo[b], box_hi[c] if s[1] > 0 else box_lo[c]])
+    r_b = float(rng.uniform(0.7, 0.95) * (box_hi[b] - box_lo[b]))
+    r_c = float(rng.uniform(0.7, 0.95) * (box_hi[c] - box_lo[c]))
+    region = []
+    for k, r in ((0, r_b), (1, r_c)):
+        ends = sorted((corner[k] - s[k] * r, corner[k] + s[k] * r * GUSSET_FADE))
+        region.append(ends)
+    g = [np.asarray(v, dtype=np.float64) for v in (xs, ys, zs)]
+    tol = 1e-9
+    for cell in np.argwhere(np.asarray(occ, dtype=bool)):
+        lo = np.array([g[a][cell[a]] for a in range(3)])
+        hi = np.array([g[a][cell[a] + 1] for a in range(3)])
+        if all(hi[ax] > r0 + tol and lo[ax] < r1 - tol for ax, (r0, r1) in zip((b, c), region)):
+            if not (np.all(lo >= box_lo - tol) and np.all(hi <= box_hi + tol)):
+                return None
+    return RoundEdge(int(axis), corner, s.copy(), r_b, "chamfer", GUSSET_FADE, r_c)
+
+
 def random_deformation(
     rng: np.random.Generator,
     lo: np.ndarray,

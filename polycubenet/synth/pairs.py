@@ -39,7 +39,8 @@ from ..atomic import load_npz, save_npz
 from ..data import Polycube, SurfaceSample
 from ..frame import Transform, canonicalize, face_normals_areas
 from ..sampling import interpolate, poisson_disk, uniform_sample
-from .deform import DeformationMap, RoundHole, breakout_cut, check_invertible, empty_cells, random_deformation
+from .deform import (DeformationMap, RoundHole, breakout_cut, check_invertible, empty_cells, gusset_cut,
+                     random_deformation)
 from ..tol import AREA_REL
 from .polycube import (FLANGES, convex_edges, polycube_quads, random_polycube, surface_genus, transform_grid,
                        triangulate_quads, turned_polycube)
@@ -201,6 +202,12 @@ def _on_polycube(sample: SurfaceSample, Vp: np.ndarray, F: np.ndarray, normals_p
     )
 
 
+def _on_box(edge: dict, lo: np.ndarray, hi: np.ndarray, tol: float = 1e-9) -> bool:
+    """Whether a convex edge's line (:func:`~polycubenet.polycube.convex_edges`) meets the closed box ``lo``-``hi``."""
+    axis = int(edge["axis"])
+    return all(lo[a] - tol <= x <= hi[a] + tol for a, x in zip(((axis + 1) % 3, (axis + 2) % 3), edge["corner"]))
+
+
 def make_pair(
     seed: int,
     *,
@@ -224,6 +231,7 @@ def make_pair(
     flanges: float = FLANGES,
     min_holes: int = 0,
     breakouts: float = 0.0,
+    gussets: float = 0.0,
 ) -> SynthPair:
     """Generate one pair from ``seed`` (see the module docstring for the steps).
 
@@ -274,6 +282,10 @@ def make_pair(
         (:func:`~polycubenet.synth.deform.breakout_cut`, instead of ``whole_slants``' cut): the hole breaks out
         through the slanted face, as drilled holes near a machined part's slanted end do.  0: a seed gives the
         pair it gave before.
+    gussets : float in [0, 1], the share of the pairs that are not turned parts given one or two ribs in concave
+        corners (:func:`~polycubenet.synth.polycube.random_polycube`), each cut across its free edge into a
+        bracket's triangular rib (:func:`~polycubenet.synth.deform.gusset_cut`, before the other maps; the rib's
+        edges are not rounded).  0: a seed gives the pair it gave before.
 
     Returns
     -------
@@ -292,7 +304,7 @@ def make_pair(
             pc = turned_polycube(rng, bolt_circles=bolt_circles, flanges=flanges)
         else:
             pc = random_polycube(rng, style=style, n_holes=n_holes, tall_bosses=tall_bosses, min_holes=min_holes,
-                                 breakouts=breakouts)
+                                 breakouts=breakouts, gussets=gussets)
         body = next((f for f in pc.features if f.kind == "turned"), None)
         V0, Q = polycube_quads(pc.xs, pc.ys, pc.zs, pc.occupancy, h=edge_length)
         lo, hi = pc.bounds
@@ -308,6 +320,9 @@ def make_pair(
                                        float(rng.choice([16.0, 64.0], p=[0.25, 0.75])), float(rng.uniform(0.85, 1.0)),
                                        1e6))
         else:
+            ribs = [f for f in pc.features if f.kind == "gusset"]
+            if ribs:  # a rib's edges are left sharp: its cut (below) is the one rounding it gets
+                edges = [e for e in edges if not any(_on_box(e, f.lo, f.hi) for f in ribs)]
             out = next((f for f in pc.features if f.kind == "breakout"), None)
             cut = None if out is None else breakout_cut(rng, lo, hi, out.lo, out.hi, out.axis)
             dmap = random_deformation(rng, lo, hi, holes, edges, strength=strength, slanted_ends=cad_features,
@@ -318,6 +333,9 @@ def make_pair(
                 at = next((i for i, m in enumerate(dmap.maps) if m.kind not in ("round_hole", "round_edge")),
                           len(dmap.maps))
                 dmap.maps.insert(at, cut)
+            if ribs:
+                cuts = [gusset_cut(rng, pc.xs, pc.ys, pc.zs, pc.occupancy, f.lo, f.hi, f.axis, f.signs) for f in ribs]
+                dmap.maps[0:0] = [m for m in cuts if m is not None]
         ok, min_det = check_invertible(dmap, lo, hi, rng, extra=V0)
         timings["deformation"] += time.perf_counter() - t1
         if not ok:

@@ -44,18 +44,26 @@ class Feature:
 
     Attributes
     ----------
-    kind : str, ``through_hole``, ``pocket``, ``slot``, ``notch``, ``step``, ``boss``, ``arch``, ``breakout``
-    axis : int, the feature's axis (hole direction, boss normal, ...; a breakout's: the end it opens into)
+    kind : str, ``through_hole``, ``pocket``, ``slot``, ``notch``, ``step``, ``boss``, ``arch``, ``breakout``,
+        ``gusset``
+    axis : int, the feature's axis (hole direction, boss normal, ...; a breakout's: the end it opens into; a
+        gusset's: the line of the corner it fills, across which it is one layer thick)
     lo, hi : (3,) float64, the feature's box in the polycube's (normalized) coordinates
+    signs : (2,) +1 / -1 or None, a gusset's: the outward directions of its free edge on the two other axes
+        (cyclic order, as :class:`~polycubenet.synth.deform.RoundEdge`'s); None for the other kinds
     """
 
     kind: str
     axis: int
     lo: np.ndarray
     hi: np.ndarray
+    signs: tuple[float, float] | None = None
 
     def to_dict(self) -> dict:
-        return {"kind": self.kind, "axis": int(self.axis), "lo": [float(v) for v in self.lo], "hi": [float(v) for v in self.hi]}
+        d = {"kind": self.kind, "axis": int(self.axis), "lo": [float(v) for v in self.lo], "hi": [float(v) for v in self.hi]}
+        if self.signs is not None:
+            d["signs"] = [float(v) for v in self.signs]
+        return d
 
 
 @dataclasses.dataclass
@@ -107,6 +115,8 @@ class _Builder:
         self.stock_hi = self.M + self.n
         self.occ[tuple(slice(l, h) for l, h in zip(self.stock_lo, self.stock_hi))] = True
         self.features: list[tuple[str, int, np.ndarray, np.ndarray]] = []
+        self.signs: dict[int, tuple[float, float]] = {}  # feature index -> a gusset's free-edge directions
+        self.ribs = np.zeros_like(self.occ)  # the cells of the gussets: no rib rests on another
 
     def box(self, lo, hi) -> tuple[slice, slice, slice]:
         return tuple(slice(int(l), int(h)) for l, h in zip(lo, hi))
@@ -264,12 +274,87 @@ class _Builder:
             blo[axis], bhi[axis] = self.stock_hi[axis] - depth, self.occ.shape[axis]
         return self.try_edit("breakout", e, blo, bhi, False)
 
+    def gusset(self) -> bool:
+        """A rib in a concave corner (a gusset): one layer thick along the corner's line, 1-3 cells out along
+        each of the two faces that meet there, every cell of its two inner sides resting on the solid, nothing in
+        the layers beside it or one cell past its free faces.  Its
+        free edge is cut across most of the rib by :func:`polycubenet.synth.pairs.make_pair` (``gussets``), into
+        the triangle of a bracket's rib, which the other features never make."""
+        occ = self.occ
+        empty, solid = ~occ, occ & ~self.ribs
+        cands = []
+        for a in range(3):
+            b, c = (a + 1) % 3, (a + 2) % 3
+            for sb in (1, -1):
+                for sc in (1, -1):
+                    behind_b, behind_c = _behind(solid, b, sb), _behind(solid, c, sc)
+                    corner = empty & behind_b & behind_c & _behind(behind_b, c, sc)
+                    cands += [(a, sb, sc, tuple(int(v) for v in e)) for e in np.argwhere(corner)]
+        if not cands:
+            return False
+        a, sb, sc, e = cands[int(self.rng.integers(len(cands)))]
+        b, c = (a + 1) % 3, (a + 2) % 3
+
+        def reach(along: int, s: int, rest: int, s_rest: int) -> int:
+            """Cells from ``e`` along ``s * along`` that are empty and rest on the solid behind on ``rest``."""
+            k, cell = 0, list(e)
+            while k < 3:
+                if not (0 <= cell[along] < occ.shape[along]) or occ[tuple(cell)]:
+                    break
+                below = list(cell)
+                below[rest] -= s_rest
+                if not solid[tuple(below)]:
+                    break
+                k += 1
+                cell[along] += s
+            return k
+
+        kb, kc = reach(b, sb, c, sc), reach(c, sc, b, sb)
+        if kb < 1 or kc < 1:  # pragma: no cover - the corner cell itself always qualifies
+            return False
+        kb, kc = int(self.rng.integers(1, kb + 1)), int(self.rng.integers(1, kc + 1))
+        lo, hi = np.array(e, dtype=np.int64), np.array(e, dtype=np.int64) + 1
+        for ax, s, k in ((b, sb, kb), (c, sc, kc)):
+            if s > 0:
+                hi[ax] = e[ax] + k
+            else:
+                lo[ax] = e[ax] - k + 1
+        # room around it: nothing in the layers beside it along ``a`` or one cell past its free faces (a rib
+        # stands alone in an open corner, not against another rib or inside a pocket)
+        room_lo, room_hi = lo.copy(), hi.copy()
+        room_lo[a], room_hi[a] = lo[a] - 1, hi[a] + 1
+        for ax, s in ((b, sb), (c, sc)):
+            if s > 0:
+                room_hi[ax] += 1
+            else:
+                room_lo[ax] -= 1
+        room_lo, room_hi = np.maximum(room_lo, 0), np.minimum(room_hi, occ.shape)
+        if occ[self.box(room_lo, room_hi)].any():
+            return False
+        if not self.try_edit("gusset", a, lo, hi, True):
+            return False
+        self.signs[len(self.features) - 1] = (float(sb), float(sc))
+        self.ribs[self.box(lo, hi)] = True
+        return True
+
     def _cell_box(self, axis, along, across, lvl, a0, a1, c0, c1):
         sl = [slice(None)] * 3
         sl[axis] = slice(lvl, lvl + 1)
         sl[along] = slice(self.stock_lo[along] + a0, self.stock_lo[along] + a1)
         sl[across] = slice(self.stock_lo[across] + c0, self.stock_lo[across] + c1)
         return tuple(sl)
+
+
+def _behind(occ: np.ndarray, axis: int, s: int) -> np.ndarray:
+    """``out[e] = occ[e - s * unit(axis)]`` (False where that cell is outside the lattice)."""
+    out = np.zeros_like(occ)
+    src = np.moveaxis(occ, axis, 0)
+    dst = np.moveaxis(out, axis, 0)
+    if s > 0:
+        dst[1:] = src[:-1]
+    else:
+        dst[:-1] = src[1:]
+    return out
 
 
 def _widths(rng: np.random.Generator, n: int, thin_p: float) -> np.ndarray:
@@ -305,6 +390,7 @@ def random_polycube(
     tall_bosses: bool = False,
     min_holes: int = 0,
     breakouts: float = 0.0,
+    gussets: float = 0.0,
 ) -> RandomPolycube:
     """A random valid polycube, machined-part style.
 
@@ -325,13 +411,16 @@ def random_polycube(
     breakouts : float in [0, 1], the share of parts with a through-hole that open one of them into the stock's
         nearer end over some of its layers (a feature ``breakout``, :meth:`_Builder.breakout`), for a slanted
         cut the hole breaks out through.  0: the random stream is the one before this option.
+    gussets : float in [0, 1], the share of parts that, after their other features, get one or two ribs in
+        concave corners where they have one (a feature ``gusset``, :meth:`_Builder.gusset`), for a cut across
+        the rib's free edge into a bracket's triangular rib.  0: the random stream is the one before this option.
 
     Returns
     -------
     RandomPolycube, normalized (bounding box centred at 0, diagonal 1)
     """
     for _ in range(max_tries):
-        pc = _random_polycube_once(rng, style, n_holes, min_width, tall_bosses, min_holes, breakouts)
+        pc = _random_polycube_once(rng, style, n_holes, min_width, tall_bosses, min_holes, breakouts, gussets)
         if pc is not None:
             return pc
     raise RuntimeError("random_polycube: no valid polycube")  # pragma: no cover - never seen
@@ -339,7 +428,7 @@ def random_polycube(
 
 def _random_polycube_once(
     rng: np.random.Generator, style: str | None, n_holes: int | None, min_width: float, tall_bosses: bool = False,
-    min_holes: int = 0, breakouts: float = 0.0,
+    min_holes: int = 0, breakouts: float = 0.0, gussets: float = 0.0,
 ) -> RandomPolycube | None:
     if style is None:
         style = str(rng.choice(_STYLES, p=_STYLE_P))
@@ -410,6 +499,11 @@ def _random_polycube_once(
             }[kind]()
             if ok:
                 break
+    if gussets > 0 and rng.random() < gussets:
+        for _ in range(int(rng.integers(1, 3))):
+            for _try in range(4):
+                if b.gusset():
+                    break
 
     occ = b.occ
     if check_occupancy(occ) is not None:  # pragma: no cover - every edit is validated
@@ -431,17 +525,17 @@ def _random_polycube_once(
         return None
     norm = [(c - center[a]) / diag for a, c in enumerate((cx, cy, cz))]
     features = []
-    for kind, axis, flo, fhi in b.features:
+    for i, (kind, axis, flo, fhi) in enumerate(b.features):
         # features still present: holes/pockets/slots must still be empty, bosses/arches still there
         sl = b.box(flo, fhi)
-        if kind in ("boss", "arch"):
-            if kind == "boss" and not occ[sl].all():
+        if kind in ("boss", "arch", "gusset"):
+            if kind in ("boss", "gusset") and not occ[sl].all():
                 continue
         elif occ[sl].any():
             continue
         flo_c = np.array([(coords[a][flo[a]] - center[a]) / diag for a in range(3)])
         fhi_c = np.array([(coords[a][fhi[a]] - center[a]) / diag for a in range(3)])
-        features.append(Feature(kind, int(axis), flo_c, fhi_c))
+        features.append(Feature(kind, int(axis), flo_c, fhi_c, b.signs.get(i)))
     return RandomPolycube(norm[0], norm[1], norm[2], cocc, solid_genus(cocc), style, features)
 
 

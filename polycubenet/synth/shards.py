@@ -88,6 +88,7 @@ class ShardParams:
     flanges: float = FLANGES
     min_holes: int = 0
     breakouts: float = 0.0
+    gussets: float = 0.0
 
 
 def pair_record(pair: SynthPair, index: int, full: bool = False) -> dict:
@@ -293,7 +294,7 @@ def _generate(seed: int, params: ShardParams) -> SynthPair:
                      whole_slants=params.whole_slants, max_strength=params.max_strength,
                      tall_bosses=params.tall_bosses, full_slants=params.full_slants, cut_slants=params.cut_slants,
                      turned=params.turned, bolt_circles=params.bolt_circles, flanges=params.flanges,
-                     min_holes=params.min_holes, breakouts=params.breakouts)
+                     min_holes=params.min_holes, breakouts=params.breakouts, gussets=params.gussets)
 
 
 def _make_record(task: tuple[int, int, ShardParams]) -> dict:
@@ -332,6 +333,7 @@ def write_dataset(
     flanges: float = FLANGES,
     min_holes: int = 0,
     breakouts: float = 0.0,
+    gussets: float = 0.0,
 ) -> list[Path]:
     """Generate ``count`` pairs into ``out/shard-*.npz`` plus ``out/dataset.json``.
 
@@ -363,6 +365,7 @@ def write_dataset(
     flanges : float, the share of turned parts with a flange (:func:`~polycubenet.synth.pairs.make_pair`)
     min_holes : int, the fewest through-holes a non-turned pair attempts (:func:`~polycubenet.synth.pairs.make_pair`)
     breakouts : float, the share of pairs with a hole breaking out through a slanted end (:func:`~polycubenet.synth.pairs.make_pair`)
+    gussets : float, the share of pairs with triangular ribs in concave corners (:func:`~polycubenet.synth.pairs.make_pair`)
 
     Returns
     -------
@@ -377,7 +380,8 @@ def write_dataset(
     params = ShardParams(int(n_cond), int(n_target), str(sampler), float(edge_length), bool(full), bool(cad_features),
                          bool(whole_slants), None if max_strength is None else float(max_strength),
                          bool(tall_bosses), float(full_slants), bool(cut_slants), float(turned),
-                         float(bolt_circles), float(flanges), int(min_holes), float(breakouts))
+                         float(bolt_circles), float(flanges), int(min_holes), float(breakouts),
+                         float(gussets))
     n_shards = (count + per_shard - 1) // per_shard
     shards = [
         {"name": f"shard-{k:05d}.npz", "first": k * per_shard, "count": min(per_shard, count - k * per_shard)}
