@@ -39,7 +39,7 @@ from ..atomic import load_npz, save_npz
 from ..data import Polycube, SurfaceSample
 from ..frame import Transform, canonicalize, face_normals_areas
 from ..sampling import interpolate, poisson_disk, uniform_sample
-from .deform import (DeformationMap, RoundHole, breakout_cut, check_invertible, empty_cells, gusset_cut,
+from .deform import (DeformationMap, RoundHole, _other_axes, breakout_cut, check_invertible, empty_cells, gusset_cut,
                      random_deformation)
 from ..tol import AREA_REL
 from .polycube import (FLANGES, convex_edges, polycube_quads, random_polycube, surface_genus, transform_grid,
@@ -204,8 +204,7 @@ def _on_polycube(sample: SurfaceSample, Vp: np.ndarray, F: np.ndarray, normals_p
 
 def _on_box(edge: dict, lo: np.ndarray, hi: np.ndarray, tol: float = 1e-9) -> bool:
     """Whether a convex edge's line (:func:`~polycubenet.polycube.convex_edges`) meets the closed box ``lo``-``hi``."""
-    axis = int(edge["axis"])
-    return all(lo[a] - tol <= x <= hi[a] + tol for a, x in zip(((axis + 1) % 3, (axis + 2) % 3), edge["corner"]))
+    return all(lo[a] - tol <= x <= hi[a] + tol for a, x in zip(_other_axes(int(edge["axis"])), edge["corner"]))
 
 
 def make_pair(
