@@ -133,6 +133,18 @@ def by_feature(rows: list[dict]) -> dict:
     return out
 
 
+def by_ribs(rows: list[dict]) -> dict:
+    """Pairs, exact structure and extraction accepted by how many gussets a pair carries (the rows' ``ribs``,
+    :meth:`polycubenet.synth.shards.Shard.ribs`; keys the count as a string, ascending, rows without one left out):
+    whether a model follows a rib cut to a triangle or drops it."""
+    out = {}
+    for n in sorted({int(r["ribs"]) for r in rows if r.get("ribs") is not None}):
+        sel = [r for r in rows if r.get("ribs") == n]
+        out[str(n)] = {"pairs": len(sel), "exact": float(np.mean([r["exact"] for r in sel])),
+                       "extracted": float(np.mean([r["error"] is None for r in sel]))}
+    return out
+
+
 def by_genus(rows: list[dict]) -> dict:
     """Pairs, exact structure, genus matched and extraction accepted per ground-truth genus (keys are the
     genus as a string, ascending): where a model's misses sit, e.g. a bolted flange's many holes."""
@@ -236,6 +248,7 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
             if len(rows) < keep_clouds:
                 kept.append((c, cloud, np.hstack([truth, np.asarray(s["target_normals"][k], float)])))
             row = {"seed": int(s["seeds"][k]), "genus": int(s["genus"][k]), "feature": s.feature(k),
+                   "ribs": s.ribs(k),
                    "chamfer": chamfer(cloud[:, :3].astype(float), truth), "gen_seconds": round(t_gen, 3),
                    # the trivial reference: the part's own samples taken as the polycube cloud
                    "chamfer_identity": chamfer(np.asarray(c, float), truth)}
@@ -297,6 +310,8 @@ def evaluate(checkpoint, data: str | Path, count: int = 100, *, n_out: int = 819
         out["by_genus"] = by_genus(rows)
         if any(r.get("feature") for r in rows):
             out["exact_by_feature"] = by_feature(rows)
+        if any(r.get("ribs") for r in rows):
+            out["exact_by_ribs"] = by_ribs(rows)
         # over the extracted clouds: planes with no ground-truth plane within 0.02, and the reverse
         out["planes_added"] = int(sum(r["planes_added"] for r in rows if r["planes_added"] is not None))
         out["planes_missed"] = int(sum(r["planes_missed"] for r in rows if r["planes_missed"] is not None))

@@ -117,6 +117,19 @@ def test_by_feature_counts_exact_and_extracted_per_class():
     assert b["neither"] == {"pairs": 1, "exact": 0.0, "extracted": 1.0}
 
 
+def test_by_ribs_counts_exact_and_extracted_per_number_of_gussets():
+    from polycubenet.evaluate import by_ribs
+
+    rows = [{"ribs": 1, "exact": False, "error": "x"}, {"ribs": 1, "exact": True, "error": None},
+            {"ribs": 0, "exact": True, "error": None}, {"ribs": None, "exact": False, "error": None},
+            {"ribs": 2, "exact": False, "error": None}]
+    b = by_ribs(rows)
+    assert list(b) == ["0", "1", "2"]  # ascending; a row from a shard without features: in none
+    assert b["0"] == {"pairs": 1, "exact": 1.0, "extracted": 1.0}
+    assert b["1"] == {"pairs": 2, "exact": 0.5, "extracted": 0.5}
+    assert b["2"] == {"pairs": 1, "exact": 0.0, "extracted": 1.0}
+
+
 def test_slant_moves_reads_the_share_of_the_way_a_generator_takes_slanted_faces(tmp_path):
     """``slant_moves`` scores a generator by how far it takes each part point toward its target's plane: one that
     leaves the part where it is moves nothing, one that returns the targets moves all the way, one halfway 0.5;

@@ -534,6 +534,9 @@ def test_generator_options_are_recorded_and_regenerated(tmp_path, flags, key, va
     for k, rec in enumerate(shard):
         again = shard.regenerate(k)
         assert np.array_equal(rec["polycube"].occupancy, again.polycube.occupancy)
+        # the evaluation's rib count is read from the recorded features: the rebuilt pair's gussets
+        assert shard.ribs(k) == sum(f["kind"] == "gusset" for f in again.meta["features"])
+    assert (sum(shard.ribs(k) for k in range(len(shard))) > 0) == (key == "gussets")
 
 
 def test_non_invertible_maps_are_caught():

@@ -241,6 +241,14 @@ class Shard:
         pairs = self.meta.get("pairs") or []
         return feature_class(pairs[k].get("deformation")) if k < len(pairs) else None
 
+    def ribs(self, k: int) -> int | None:
+        """How many gussets (``synth --gussets``: ribs in concave corners) pair ``k`` carries, from its recorded
+        features; None when the shard records none."""
+        pairs = self.meta.get("pairs") or []
+        if k >= len(pairs) or pairs[k].get("features") is None:
+            return None
+        return sum(f.get("kind") == "gusset" for f in pairs[k]["features"])
+
     def regenerate(self, k: int) -> SynthPair:
         """Rebuild the full pair ``k`` (meshes, map, float64 samples) from its seed."""
         # a shard written before a parameter existed has that parameter's default
