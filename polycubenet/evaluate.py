@@ -128,9 +128,14 @@ def by_feature(rows: list[dict]) -> dict:
     for name in FEATURE_CLASSES:
         sel = [r for r in rows if r.get("feature") == name]
         if sel:
-            out[name] = {"pairs": len(sel), "exact": float(np.mean([r["exact"] for r in sel])),
-                         "extracted": float(np.mean([r["error"] is None for r in sel]))}
+            out[name] = _exact_extracted(sel)
     return out
+
+
+def _exact_extracted(sel: list[dict]) -> dict:
+    """Pairs, exact structure and extraction accepted over the rows ``sel`` (one class of a split)."""
+    return {"pairs": len(sel), "exact": float(np.mean([r["exact"] for r in sel])),
+            "extracted": float(np.mean([r["error"] is None for r in sel]))}
 
 
 def by_ribs(rows: list[dict]) -> dict:
@@ -139,9 +144,7 @@ def by_ribs(rows: list[dict]) -> dict:
     whether a model follows a rib cut to a triangle or drops it."""
     out = {}
     for n in sorted({int(r["ribs"]) for r in rows if r.get("ribs") is not None}):
-        sel = [r for r in rows if r.get("ribs") == n]
-        out[str(n)] = {"pairs": len(sel), "exact": float(np.mean([r["exact"] for r in sel])),
-                       "extracted": float(np.mean([r["error"] is None for r in sel]))}
+        out[str(n)] = _exact_extracted([r for r in rows if r.get("ribs") == n])
     return out
 
 
