@@ -274,6 +274,21 @@ def test_a_wider_write_network_starts_as_the_narrower_one_it_widens(shards, tmp_
     assert grown.denoiser.blocks[0].write_ff.net[2].weight[:, n_old:].abs().sum() > 0
 
 
+def test_a_deeper_and_wider_model_starts_as_the_one_it_grows(shards, tmp_path):
+    """``--init`` into a preset that is both deeper and wider (``cpu-anchored-normals-big`` over
+    ``cpu-anchored-normals``): the added latent layers start as identities and the added hidden units with zero
+    output weights, both at once, so the larger model computes the smaller one's function until it trains."""
+    from polycubenet.model import preset as model_preset
+
+    big, base = model_preset("cpu-anchored-normals-big"), model_preset("cpu-anchored-normals")
+    assert big.denoiser.layers > base.denoiser.layers and big.denoiser.write_mlp_ratio > base.denoiser.mlp_ratio
+    assert dataclasses.replace(big, denoiser=base.denoiser) == base  # only the denoiser's sizes differ
+    old, new, _ = _grown_from_tiny(shards, tmp_path, layers=3, write_mlp_ratio=4.0)
+    assert len(new.denoiser.blocks[0].layers) == 3 and len(old.denoiser.blocks[0].layers) == 1
+    assert new.denoiser.blocks[0].write_ff.net[0].weight.shape[0] > old.denoiser.blocks[0].write_ff.net[0].weight.shape[0]
+    _assert_same_function(old, new)
+
+
 def test_a_growing_folder_is_reread_loading_only_the_new_shards(shards, tmp_path, monkeypatch):
     import shutil
 
