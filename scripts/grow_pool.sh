@@ -1,0 +1,39 @@
+#!/usr/bin/env bash
+# A training folder that keeps growing with pairs never drawn before: MIXF's shards plus new ones, written one
+# shard (256 pairs) at a time while a run trains on the folder (`python -m polycubenet.train --data $DATA/mixs
+# --reload-every 50 ...` picks each new shard up as it is linked).
+#
+#   scripts/grow_pool.sh [ROUNDS]      (DATA=/work/data; one round ~5 minutes of one core; default 40 rounds)
+#
+# Each round adds one shard of each of MIXF's two large sources under new seeds (seed 201 the plain pairs, seed
+# 206 --cad-features --whole-slants), and every third round one turned shard (seed 213 --turned 1.0
+# --bolt-circles 0.75), into $DATA/pool201, pool206, pool213, linked into $DATA/mixs beside links to every MIXF
+# shard.  Pair i of a seed does not depend on the count asked for, so a round's larger --count only adds a shard,
+# and re-running the script (or running it on a fresh machine) rebuilds the same pairs and resumes.  None of
+# these seeds is a held-out seed (2, 9102, 9001, 9017).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+DATA=${DATA:-/work/data}
+PY=${PY:-.venv/bin/python}
+ROUNDS=${1:-40}
+S="$PY -m polycubenet.synth --n-cond 2048 --n-target 2048 --no-progress --workers 1"
+mkdir -p "$DATA/mixs"
+for f in "$DATA/mixf"/shard-*.npz; do
+  [ -e "$DATA/mixs/$(basename "$f")" ] || ln -s "$(readlink -f "$f")" "$DATA/mixs/$(basename "$f")"
+done
+link() {  # link SRC PREFIX: every finished shard of $DATA/SRC into $DATA/mixs as shard-PREFIX<n>.npz
+  for f in "$DATA/$1"/shard-*.npz; do
+    [ -e "$f" ] || continue
+    b=$(basename "$f")
+    [ -e "$DATA/mixs/shard-$2${b#shard-}" ] || ln -s "$f" "$DATA/mixs/shard-$2${b#shard-}"
+  done
+}
+for r in $(seq 1 "$ROUNDS"); do
+  n=$((256 * r))
+  $S --out "$DATA/pool201" --count $n --seed 201 && link pool201 p201-
+  $S --out "$DATA/pool206" --count $n --seed 206 --cad-features --whole-slants && link pool206 p206-
+  if [ $((r % 3)) -eq 0 ]; then
+    $S --out "$DATA/pool213" --count $((256 * r / 3)) --seed 213 --turned 1.0 --bolt-circles 0.75 && link pool213 p213-
+  fi
+  echo "round $r of $ROUNDS: $(ls "$DATA/mixs" | wc -l) shards in $DATA/mixs ($(date +%H:%M))"
+done
