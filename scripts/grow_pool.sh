@@ -21,13 +21,8 @@ mkdir -p "$DATA/mixs"
 for f in "$DATA/mixf"/shard-*.npz; do
   [ -e "$DATA/mixs/$(basename "$f")" ] || ln -s "$(readlink -f "$f")" "$DATA/mixs/$(basename "$f")"
 done
-link() {  # link SRC PREFIX: every finished shard of $DATA/SRC into $DATA/mixs as shard-PREFIX<n>.npz
-  for f in "$DATA/$1"/shard-*.npz; do
-    [ -e "$f" ] || continue
-    b=$(basename "$f")
-    [ -e "$DATA/mixs/shard-$2${b#shard-}" ] || ln -s "$f" "$DATA/mixs/shard-$2${b#shard-}"
-  done
-}
+. scripts/link_shards.sh
+link() { link_shards "$DATA/$1" "$DATA/mixs" "$2"; }  # link SRC PREFIX: SRC's finished shards into $DATA/mixs
 for r in $(seq 1 "$ROUNDS"); do
   n=$((256 * r))
   $S --out "$DATA/pool201" --count $n --seed 201 && link pool201 p201-

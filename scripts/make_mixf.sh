@@ -18,13 +18,8 @@ DATA=${DATA:-/work/data}
 PY=${PY:-.venv/bin/python}
 S="$PY -m polycubenet.synth --n-cond 2048 --n-target 2048 --no-progress --workers 1"
 mkdir -p "$DATA/mixf"
-link() {  # link SRC PREFIX: every finished shard of $DATA/SRC into $DATA/mixf as shard-PREFIX<n>.npz
-  for f in "$DATA/$1"/shard-*.npz; do
-    [ -e "$f" ] || continue
-    b=$(basename "$f")
-    [ -e "$DATA/mixf/shard-$2${b#shard-}" ] || ln -s "$f" "$DATA/mixf/shard-$2${b#shard-}"
-  done
-}
+. scripts/link_shards.sh
+link() { link_shards "$DATA/$1" "$DATA/mixf" "$2"; }  # link SRC PREFIX: SRC's finished shards into $DATA/mixf
 $S --out "$DATA/heldout" --count 256 --seed 2
 for r in $(seq 1 12); do
   n=$((256 * r))
