@@ -18,10 +18,8 @@ PY=${PY:-.venv/bin/python}
 ROUNDS=${1:-40}
 S="$PY -m polycubenet.synth --n-cond 2048 --n-target 2048 --no-progress --workers 1"
 mkdir -p "$DATA/mixs"
-for f in "$DATA/mixf"/shard-*.npz; do
-  [ -e "$DATA/mixs/$(basename "$f")" ] || ln -s "$(readlink -f "$f")" "$DATA/mixs/$(basename "$f")"
-done
 . scripts/link_shards.sh
+link_shards "$DATA/mixf" "$DATA/mixs" ""  # MIXF's shards under their own names (needs scripts/make_mixf.sh first)
 link() { link_shards "$DATA/$1" "$DATA/mixs" "$2"; }  # link SRC PREFIX: SRC's finished shards into $DATA/mixs
 for r in $(seq 1 "$ROUNDS"); do
   n=$((256 * r))
