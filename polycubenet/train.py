@@ -7,7 +7,9 @@
   = the polycube's samples with axis normals), both subsampled at random to the
   training resolution every time a pair is drawn.  Augmentation keeps the pair
   consistent: the same random anisotropic scaling of shape and polycube (axis normals
-  stay axis normals), re-normalised to diagonal 1, and a small jitter on the condition.
+  stay axis normals), re-normalised to diagonal 1, and a small jitter on the condition; with
+  ``--mirror-aug P`` each axis of a pair is also mirrored with chance P (the canonical frame
+  fixes the signs of x and y by the part's third moments, so by default a pair is never mirrored).
 * AdamW, cosine decay with linear warm-up, gradient clipping, EMA weights, bf16
   autocast on CUDA, the hybrid loss of :class:`~polycubenet.model.Diffusion`.
 * ``RUN/last.pt`` (``--out RUN``) is written atomically every ``--ckpt-every`` steps and at the end;
@@ -61,6 +63,7 @@ class TrainConfig:
     seed: int = 0
     scale_aug: float = 0.15  # anisotropic scale factors in [1 - a, 1 + a]
     jitter: float = 0.002  # condition jitter (diagonal units)
+    mirror_aug: float = 0.0  # > 0: each axis of a drawn pair mirrored (x -> -x for shape, polycube, normals) with this chance
     eval_pairs: int = 32
     ckpt_every: int = 200
     log_every: int = 20
@@ -201,6 +204,11 @@ class PairData:
             g, p, a = g / diag, p / diag, a / diag
         if cfg is not None and cfg.jitter > 0:
             g = g + rng.normal(scale=cfg.jitter, size=g.shape)
+        if cfg is not None and cfg.mirror_aug > 0:
+            m = np.where(rng.random((B, 1, 3)) < cfg.mirror_aug, -1.0, 1.0)
+            g, p, a, nrm = g * m, p * m, a * m, nrm * m.astype(np.float32)
+            if an is not None:
+                an = an * m
         out = (torch.from_numpy(np.concatenate([p.astype(np.float32), nrm], axis=-1)),
                torch.from_numpy(g.astype(np.float32)))
         if an is not None:
@@ -251,6 +259,12 @@ class DevicePairs:
             g, p, a = g / diag, p / diag, a / diag
         if cfg is not None and cfg.jitter > 0:
             g = g + cfg.jitter * torch.randn(g.shape, generator=gen, device=self.dev)
+        if cfg is not None and cfg.mirror_aug > 0:
+            flip = torch.rand((B, 1, 3), generator=gen, device=self.dev) < cfg.mirror_aug
+            m = 1.0 - 2.0 * flip.to(g.dtype)
+            g, p, a, nrm = g * m, p * m, a * m, nrm * m
+            if an is not None:
+                an = an * m
         out = (torch.cat([p, nrm], dim=-1), g)
         if an is not None:
             a = torch.cat([a, an], dim=-1)
@@ -534,7 +548,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
     if eval_dir is not None and rank == 0:
         ev = PairData(eval_dir, limit=cfg.eval_pairs)
         # no augmentation, the condition at the run's own resolution (cond_points)
-        plain = dataclasses.replace(cfg, scale_aug=0.0, jitter=0.0)
+        plain = dataclasses.replace(cfg, scale_aug=0.0, jitter=0.0, mirror_aug=0.0)
         heldout = _to_net(ev.batch(np.arange(len(ev)), cfg.points, np.random.default_rng(12345), plain,
                                    anchors=mcfg.anchor_dim), mcfg, dev)
         if mcfg.genus_classes:
@@ -651,8 +665,8 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *, eval_d
 def recipe_flags(checkpoint: str | Path) -> list[str]:
     """The ``train`` flags of the recipe a checkpoint was trained with (preset, diffusion, points,
     condition points, batch, anchor gain, t bias and its uniform share, recycling share,
-    face weight, normal weight, slant weight, genus drop), so a run continues it (``scripts/train_session.sh``,
-    ``scripts/device_train.sh``; a later ``--batch`` on the command line wins)."""
+    face weight, normal weight, slant weight, genus drop, mirror share), so a run continues it
+    (``scripts/train_session.sh``, ``scripts/device_train.sh``; a later ``--batch`` on the command line wins)."""
     s = torch.load(checkpoint, map_location="cpu", weights_only=False)
     d, tc = s.get("diffusion") or {}, s.get("train_config") or {}
     return ["--preset", tc.get("preset", "cpu"),
@@ -663,7 +677,7 @@ def recipe_flags(checkpoint: str | Path) -> list[str]:
             "--t-bias", str(tc.get("t_bias", 1.0)), "--t-uniform", str(tc.get("t_uniform", 0.0)),
             "--recycle", str(tc.get("recycle", 0.0)), "--face-weight", str(tc.get("face_weight", 0.0)),
             "--normal-weight", str(tc.get("normal_weight", 1.0)), "--slant-weight", str(tc.get("slant_weight", 0.0)),
-            "--genus-drop", str(tc.get("genus_drop", 0.1))]
+            "--genus-drop", str(tc.get("genus_drop", 0.1)), "--mirror-aug", str(tc.get("mirror_aug", 0.0))]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -7,8 +7,9 @@
 #
 # Each round adds one shard of each of MIXF's two large sources under new seeds (seed 201 the plain pairs, seed
 # 206 --cad-features --whole-slants), and every third round one turned shard (seed 213 --turned 1.0
-# --bolt-circles 0.75), into $DATA/pool201, pool206, pool213, linked into $DATA/mixs beside links to every MIXF
-# shard.  Pair i of a seed does not depend on the count asked for, so a round's larger --count only adds a shard,
+# --bolt-circles 0.75) and one flanged shard (seed 214, --flanges 1.0 besides), into $DATA/pool201, pool206,
+# pool213, pool214, linked into $DATA/mixs beside links to every MIXF shard present (none on a machine where
+# scripts/make_mixf.sh has not run: then the folder holds only pairs never drawn before).  Pair i of a seed does not depend on the count asked for, so a round's larger --count only adds a shard,
 # and re-running the script (or running it on a fresh machine) rebuilds the same pairs and resumes.  None of
 # these seeds is a held-out seed (2, 9102, 9001, 9017).
 set -euo pipefail
@@ -19,12 +20,16 @@ ROUNDS=${1:-40}
 S="$PY -m polycubenet.synth --n-cond 2048 --n-target 2048 --no-progress --workers 1"
 mkdir -p "$DATA/mixs"
 . scripts/link_shards.sh
-link_shards "$DATA/mixf" "$DATA/mixs" ""  # MIXF's shards under their own names (needs scripts/make_mixf.sh first)
+link_shards "$DATA/mixf" "$DATA/mixs" ""  # MIXF's shards, where scripts/make_mixf.sh has written them
 link() { link_shards "$DATA/$1" "$DATA/mixs" "$2"; }  # link SRC PREFIX: SRC's finished shards into $DATA/mixs
 for r in $(seq 1 "$ROUNDS"); do
   n=$((256 * r))
   $S --out "$DATA/pool201" --count $n --seed 201 && link pool201 p201-
   $S --out "$DATA/pool206" --count $n --seed 206 --cad-features --whole-slants && link pool206 p206-
+  if [ $((r % 3)) -eq 1 ]; then
+    $S --out "$DATA/pool214" --count $((256 * (r + 2) / 3)) --seed 214 --turned 1.0 --bolt-circles 0.75 \
+      --flanges 1.0 && link pool214 p214-
+  fi
   if [ $((r % 3)) -eq 0 ]; then
     $S --out "$DATA/pool213" --count $((256 * r / 3)) --seed 213 --turned 1.0 --bolt-circles 0.75 && link pool213 p213-
   fi

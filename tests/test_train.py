@@ -50,6 +50,37 @@ def test_batches_keep_the_pair_consistent(shards):
     assert np.all(d <= 1.0 + 1e-5) and np.all(d > 0.6)
 
 
+@pytest.mark.parametrize("on_device", [False, True])
+def test_mirrored_pairs_mirror_shape_polycube_normals_and_anchors_alike(shards, on_device):
+    """``mirror_aug``: the same draw as without it (points, scaling, jitter), each pair's three axes each
+    kept or negated, one pattern per pair shared by the condition, the polycube's points and normals and
+    the anchors; at 1.0 every axis of every pair is negated, at 0.5 both patterns occur."""
+    data = PairData(shards)
+    idx = np.arange(6).repeat(4)
+    cfg = dataclasses.replace(CFG, jitter=0.001)
+
+    def draw(p):
+        c = dataclasses.replace(cfg, mirror_aug=p)
+        if on_device:
+            return DevicePairs(data, torch.device("cpu"), anchors=6).batch(idx, 64, torch.Generator().manual_seed(3), c)
+        return data.batch(idx, 64, np.random.default_rng(3), c, anchors=6)
+
+    plain, every, half = draw(0.0), draw(1.0), draw(0.5)
+    for a, b in zip(plain, every):
+        np.testing.assert_allclose(b.numpy(), -a.numpy(), atol=1e-6)
+    signs = []
+    for a, b in zip(plain, half):
+        a, b = a.numpy().reshape(len(idx), 64, -1, 3), b.numpy().reshape(len(idx), 64, -1, 3)
+        np.testing.assert_allclose(np.abs(b), np.abs(a), atol=1e-6)
+        big = np.abs(a) > 1e-3
+        s = np.where(big, np.sign(b) * np.sign(a), 0.0)
+        per_pair = np.array([[np.unique(s[k, ..., j][big[k, ..., j]]) for j in range(3)] for k in range(len(idx))])
+        assert per_pair.shape == (len(idx), 3, 1)  # one sign per pair and axis, in every channel
+        signs.append(per_pair[..., 0])
+    assert all(np.array_equal(signs[0], s) for s in signs[1:])
+    assert (signs[0] < 0).any() and (signs[0] > 0).any()
+
+
 def test_learning_rate_schedule():
     cfg = TrainConfig(lr=1e-3, warmup=10, steps=110, min_lr_ratio=0.1)
     assert lr_at(0, cfg) == pytest.approx(1e-4)
