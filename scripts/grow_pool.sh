@@ -7,9 +7,10 @@
 #
 # Each round adds one shard of each of MIXF's two large sources under new seeds (seed 201 the plain pairs, seed
 # 206 --cad-features --whole-slants), and every third round one turned shard (seed 213 --turned 1.0
-# --bolt-circles 0.75) and one flanged shard (seed 214, --flanges 1.0 besides), into $DATA/pool201, pool206,
-# pool213, pool214, linked into $DATA/mixs beside links to every MIXF shard present (none on a machine where
-# scripts/make_mixf.sh has not run: then the folder holds only pairs never drawn before).  Pair i of a seed does not depend on the count asked for, so a round's larger --count only adds a shard,
+# --bolt-circles 0.75) and one flanged shard (seed 214, --flanges 1.0 besides), each into $DATA/pool<seed>,
+# linked into $DATA/mixs beside links to every MIXF shard present (none on a machine where scripts/make_mixf.sh
+# has not run: then the folder holds only pairs never drawn before).  Pair i of a seed does not depend on the
+# count asked for, so a round's larger --count only adds a shard,
 # and re-running the script (or running it on a fresh machine) rebuilds the same pairs and resumes.  None of
 # these seeds is a held-out seed (2, 9102, 9001, 9017).  SHIFT=K (environment) adds K to all four seeds (folders
 # pool<seed>, links p<seed>-*), for pairs a line that already drew the default pools has not drawn: a session on a
